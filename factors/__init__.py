@@ -1,0 +1,1 @@
+"""GTSAM custom factors for ggfslam (RGB-D observation and GCGR factors), each with checked Jacobians."""

@@ -1,0 +1,2 @@
+"""ggfslam: RGB-D Gaussian-Splatting SLAM with a Geometric-Gaussian Field (GGF-SLAM), CPU-first."""
+__version__ = "0.1.0"

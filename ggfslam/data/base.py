@@ -1,0 +1,139 @@
+"""The lazily streaming RGB-D dataset interface shared by every reader."""
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Iterator
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ggfslam.data.types import Camera, Frame
+from ggfslam.errors import DatasetError
+
+
+class RGBDDataset(ABC):
+    """A sequence of RGB-D frames read on demand, with start/stop/stride selection and optional resize.
+
+    Subclasses index raw frames ``0 .. _raw_len()-1`` and implement ``_load``; this class maps the
+    selection (``start``, ``stop``, ``stride``) onto them and resizes images (intrinsics scaled to match).
+    """
+
+    def __init__(
+        self,
+        root: str | Path,
+        start: int = 0,
+        stop: int | None = None,
+        stride: int = 1,
+        resize: tuple[int, int] | None = None,
+    ):
+        self.root = Path(root)
+        if not self.root.is_dir():
+            raise DatasetError(self.root, "dataset folder not found")
+        self._start, self._stop, self._stride = start, stop, stride
+        self._resize = None if resize is None else (int(resize[0]), int(resize[1]))
+        if self._resize is not None and min(self._resize) <= 0:
+            raise DatasetError(self.root, f"resize must be two positive integers (width, height), got {resize}")
+        if stride < 1:
+            raise DatasetError(self.root, f"stride must be >= 1, got {stride}")
+        if start < 0:
+            raise DatasetError(self.root, f"start must be >= 0, got {start}")
+        self._indices: np.ndarray | None = None
+
+    # --- for subclasses -------------------------------------------------------------------------
+    @abstractmethod
+    def _raw_len(self) -> int:
+        """Number of frames in the whole sequence."""
+
+    @abstractmethod
+    def _raw_camera(self) -> Camera:
+        """Intrinsics at the stored resolution."""
+
+    @abstractmethod
+    def _raw_timestamps(self) -> np.ndarray:
+        """Timestamps [N_raw] in seconds."""
+
+    def _raw_gt(self) -> np.ndarray | None:
+        """Ground-truth camera-to-world poses [N_raw, 4, 4], or None when the sequence has none."""
+        return None
+
+    @abstractmethod
+    def _load(self, raw_index: int) -> tuple[np.ndarray, np.ndarray, str]:
+        """Colour [H, W, 3] float32, depth [H, W] float32 metres, and the colour file name of one raw frame."""
+
+    # --- public API -----------------------------------------------------------------------------
+    @property
+    def indices(self) -> np.ndarray:
+        """Raw indices of the selected frames [N]."""
+        if self._indices is None:
+            n = self._raw_len()
+            if n == 0:
+                raise DatasetError(self.root, "dataset has no frames")
+            if self._start >= n:
+                raise DatasetError(self.root, f"start={self._start} is past the last frame (sequence has {n})")
+            stop = n if self._stop is None else min(self._stop, n)
+            self._indices = np.arange(self._start, stop, self._stride)
+            if len(self._indices) == 0:
+                raise DatasetError(self.root, f"selection start={self._start} stop={self._stop} is empty")
+        return self._indices
+
+    @property
+    def camera(self) -> Camera:
+        """Intrinsics of the frames this dataset yields (after resize)."""
+        cam = self._raw_camera()
+        if self._resize is not None:
+            cam = cam.resized(*self._resize)
+        return cam
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        """Timestamps [N] of the selected frames."""
+        return self._raw_timestamps()[self.indices]
+
+    @property
+    def gt_poses(self) -> np.ndarray | None:
+        """Ground-truth camera-to-world poses [N, 4, 4] of the selected frames, or None."""
+        gt = self._raw_gt()
+        return None if gt is None else gt[self.indices]
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def __getitem__(self, i: int) -> Frame:
+        n = len(self)
+        if i < 0:
+            i += n
+        if not 0 <= i < n:
+            raise IndexError(f"frame {i} out of range for a sequence of {n}")
+        raw = int(self.indices[i])
+        rgb, depth, name = self._load(raw)
+        raw_cam = self._raw_camera()
+        if rgb.shape[:2] != (raw_cam.height, raw_cam.width):
+            raise DatasetError(name, f"colour image is {rgb.shape[1]}x{rgb.shape[0]}, expected "
+                                     f"{raw_cam.width}x{raw_cam.height} like the rest of the sequence")
+        if depth.shape != rgb.shape[:2]:
+            raise DatasetError(name, f"depth image is {depth.shape[1]}x{depth.shape[0]} but colour is "
+                                     f"{rgb.shape[1]}x{rgb.shape[0]}")
+        if self._resize is not None and self._resize != (raw_cam.width, raw_cam.height):
+            w, h = self._resize
+            rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
+            # nearest keeps depth edges sharp: averaging across a discontinuity invents surfaces
+            depth = cv2.resize(depth, (w, h), interpolation=cv2.INTER_NEAREST)
+        gt = self._raw_gt()
+        return Frame(
+            index=i,
+            timestamp=float(self._raw_timestamps()[raw]),
+            rgb=np.ascontiguousarray(rgb, dtype=np.float32),
+            depth=np.ascontiguousarray(depth, dtype=np.float32),
+            T_wc=None if gt is None else gt[raw].copy(),
+            name=name,
+        )
+
+    def __iter__(self) -> Iterator[Frame]:
+        for i in range(len(self)):
+            yield self[i]
+
+    def describe(self) -> str:
+        """One line naming the sequence, its size and resolution."""
+        cam = self.camera
+        return f"{type(self).__name__}({self.root}, {len(self)} frames, {cam.width}x{cam.height})"

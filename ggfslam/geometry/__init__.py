@@ -1,0 +1,1 @@
+"""Geometry helpers: SE(3), depth back-projection, normals."""
