@@ -1,0 +1,107 @@
+"""Image and depth metrics: PSNR, SSIM (the differentiable SSIM the training loss uses), LPIPS, depth L1."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from pytorch_msssim import ssim as _ms_ssim
+
+from ggfslam.errors import ConfigError
+from ggfslam.eval.base import Metric
+
+
+def _as_chw(img) -> torch.Tensor:
+    """[3, H, W] float tensor from numpy [H, W, 3] or torch [3, H, W]."""
+    if isinstance(img, np.ndarray):
+        return torch.from_numpy(np.ascontiguousarray(img, dtype=np.float32)).permute(2, 0, 1)
+    return img
+
+
+def psnr(img: np.ndarray | torch.Tensor, ref: np.ndarray | torch.Tensor, mask=None) -> float:
+    """Peak signal-to-noise ratio (dB) of images in [0, 1]; ``mask`` [H, W] restricts the pixels."""
+    a = torch.as_tensor(np.asarray(img) if isinstance(img, np.ndarray) else img, dtype=torch.float64)
+    b = torch.as_tensor(np.asarray(ref) if isinstance(ref, np.ndarray) else ref, dtype=torch.float64)
+    err = (a - b) ** 2
+    if mask is not None:
+        m = torch.as_tensor(np.asarray(mask) if isinstance(mask, np.ndarray) else mask, dtype=torch.bool)
+        err = err[m] if err.shape[:2] == m.shape else err[..., m]
+    mse = float(err.mean())
+    return float("inf") if mse == 0 else -10.0 * float(np.log10(mse))
+
+
+def ssim(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+    """Differentiable SSIM (11x11 Gaussian window, sigma 1.5) of [3, H, W] or [B, 3, H, W] images in [0, 1]."""
+    if img.dim() == 3:
+        img, ref = img[None], ref[None]
+    return _ms_ssim(img, ref, data_range=1.0, size_average=True)
+
+
+def ssim_np(img: np.ndarray, ref: np.ndarray) -> float:
+    """SSIM of two numpy RGB images [H, W, 3] in [0, 1]."""
+    with torch.no_grad():
+        return float(ssim(_as_chw(img), _as_chw(ref)))
+
+
+def depth_l1_cm(depth: np.ndarray, ref: np.ndarray) -> float:
+    """Mean |depth - ref| in centimetres over pixels where the reference depth is valid (> 0)."""
+    valid = ref > 0
+    if not np.any(valid):
+        return float("nan")
+    return float(100.0 * np.mean(np.abs(depth[valid].astype(np.float64) - ref[valid])))
+
+
+class LPIPS:
+    """LPIPS from a local TorchScript network (``net(x, y)`` on [-1, 1] images); weights are never downloaded."""
+
+    def __init__(self, weights: str | Path | None):
+        self.net = None
+        if weights is None:
+            return
+        path = Path(weights)
+        if not path.is_file():
+            raise ConfigError(f"eval.lpips_weights: {path} not found (a TorchScript LPIPS network file)")
+        try:
+            self.net = torch.jit.load(str(path), map_location="cpu").eval()
+        except Exception as e:  # torch raises many types for a bad archive
+            raise ConfigError(f"eval.lpips_weights: {path} is not a TorchScript module ({e.__class__.__name__})") from None
+
+    @property
+    def available(self) -> bool:
+        return self.net is not None
+
+    def __call__(self, img: np.ndarray, ref: np.ndarray) -> float:
+        """LPIPS distance of two RGB images [H, W, 3] in [0, 1]."""
+        if self.net is None:
+            raise RuntimeError("LPIPS: no weights")
+        with torch.no_grad():
+            a = _as_chw(img)[None] * 2 - 1
+            b = _as_chw(ref)[None] * 2 - 1
+            return float(self.net(a, b).mean())
+
+
+class PSNR(Metric):
+    """PSNR (dB) per image pair; ``process_data((img, ref))``."""
+
+    name, unit = "PSNR", "dB"
+
+    def process_data(self, data) -> None:
+        self.values.append(psnr(*data))
+
+
+class SSIM(Metric):
+    """SSIM per image pair; ``process_data((img, ref))``."""
+
+    name, unit = "SSIM", ""
+
+    def process_data(self, data) -> None:
+        self.values.append(ssim_np(*data))
+
+
+class DepthL1(Metric):
+    """Depth L1 (cm) per depth pair over valid reference pixels; ``process_data((depth, ref))``."""
+
+    name, unit = "Depth L1", "cm"
+
+    def process_data(self, data) -> None:
+        self.values.append(depth_l1_cm(*data))

@@ -1,0 +1,51 @@
+"""Metric tables for the terminal (rich) and the JSON layout of ``metrics.json``."""
+from __future__ import annotations
+
+import math
+
+from rich.console import Console
+from rich.table import Table
+
+# (section, key, label, format)
+ROWS = [
+    ("trajectory", "ate_rmse_cm", "ATE RMSE [cm] (all frames)", "{:.2f}"),
+    ("trajectory", "ate_mean_cm", "ATE mean [cm]", "{:.2f}"),
+    ("trajectory", "ate_max_cm", "ATE max [cm]", "{:.2f}"),
+    ("trajectory", "rpe_trans_rmse_cm", "RPE trans RMSE [cm/frame]", "{:.2f}"),
+    ("trajectory", "rpe_rot_rmse_deg", "RPE rot RMSE [deg/frame]", "{:.3f}"),
+    ("trajectory", "ate_pairs", "frames scored", "{:d}"),
+    ("tracking", "frames", "frames", "{:d}"),
+    ("tracking", "frames_lost", "frames lost", "{:d}"),
+    ("tracking", "fps", "tracking [frames/s]", "{:.1f}"),
+    ("rendering", "psnr", "PSNR [dB]", "{:.2f}"),
+    ("rendering", "ssim", "SSIM", "{:.3f}"),
+    ("rendering", "lpips", "LPIPS", "{}"),
+    ("rendering", "depth_l1_cm", "Depth L1 [cm]", "{:.2f}"),
+    ("system", "wall_seconds", "wall time [s]", "{:.1f}"),
+    ("system", "peak_rss_mb", "peak memory [MiB]", "{:.0f}"),
+]
+
+
+def _fmt(value, fmt: str) -> str:
+    if isinstance(value, float) and math.isnan(value):
+        return "n/a"
+    try:
+        return fmt.format(value)
+    except (ValueError, TypeError):
+        return str(value)
+
+
+def metrics_table(metrics: dict, title: str = "ggfslam metrics") -> Table:
+    """A two-column rich table of the metrics present in a ``metrics.json`` dict."""
+    table = Table(title=title, show_header=True, header_style="bold")
+    table.add_column("metric")
+    table.add_column("value", justify="right")
+    for section, key, label, fmt in ROWS:
+        if key in metrics.get(section, {}):
+            table.add_row(label, _fmt(metrics[section][key], fmt))
+    return table
+
+
+def print_metrics(metrics: dict, title: str = "ggfslam metrics", console: Console | None = None) -> None:
+    """Print the metrics table."""
+    (console or Console()).print(metrics_table(metrics, title))

@@ -1,0 +1,136 @@
+"""Metrics against hand-computed values."""
+import numpy as np
+import pytest
+import torch
+
+from ggfslam.eval.image import LPIPS, PSNR, SSIM, DepthL1, depth_l1_cm, psnr, ssim, ssim_np
+from ggfslam.eval.perf import StageTimer, peak_rss_mb
+from ggfslam.eval.report import metrics_table
+from ggfslam.eval.trajectory import ATE, RPE, trajectory_metrics
+from ggfslam.errors import ConfigError
+from ggfslam.geometry.se3 import make_pose
+from scipy.spatial.transform import Rotation
+
+
+def poses_at(positions):
+    return np.stack([make_pose(np.eye(3), p) for p in positions])
+
+
+def test_ate_is_invariant_to_a_rigid_transform_of_the_estimate():
+    rng = np.random.default_rng(0)
+    gt = poses_at(np.cumsum(rng.normal(scale=0.1, size=(30, 3)), axis=0))
+    G = make_pose(Rotation.from_euler("xyz", [10, -20, 35], degrees=True).as_matrix(), [1, -2, 0.5])
+    est = np.einsum("ij,njk->nik", G, gt)
+    stamps = np.arange(30) * 0.1
+    out = trajectory_metrics(stamps, est, stamps, gt)
+    assert out["ate_rmse_cm"] < 1e-8 and out["rpe_trans_rmse_cm"] < 1e-8 and out["ate_pairs"] == 30
+
+
+def test_ate_equals_hand_computed_offset():
+    # symmetric layout: the optimal alignment is the identity, so every residual is exactly d
+    d = 0.03
+    gt_p = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0]], dtype=float)
+    s = np.array([1, 1, -1, -1])
+    est_p = gt_p + d * s[:, None] * np.array([0, 0, 1.0])
+    stamps = np.arange(4, dtype=float)
+    ate = ATE(max_diff=0.01)
+    ate.process_data((stamps, poses_at(est_p), stamps, poses_at(gt_p)))
+    assert ate.get_statistic("rmse") == pytest.approx(d, abs=1e-12)
+    assert ate.get_statistic("max") == pytest.approx(d, abs=1e-12)
+    np.testing.assert_allclose(ate.alignment, np.eye(4), atol=1e-12)
+
+
+def test_ate_associates_by_timestamp_and_skips_unmatched():
+    gt_p = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [5, 5, 5]], dtype=float)
+    gt_t = np.array([0.0, 1.0, 2.0, 3.0, 10.0])
+    est_t = np.array([0.005, 1.004, 1.999, 3.001])  # no estimate near t = 10
+    ate = ATE(max_diff=0.01)
+    ate.process_data((est_t, poses_at(gt_p[:4]), gt_t, poses_at(gt_p)))
+    assert ate.num_pairs == 4 and ate.get_statistic("rmse") < 1e-12
+    with pytest.raises(ValueError, match="associate"):
+        ATE(max_diff=0.001).process_data((est_t + 100, poses_at(gt_p[:4]), gt_t, poses_at(gt_p)))
+
+
+def test_rpe_of_a_constant_step_error():
+    gt_p = np.array([[i, 0, 0] for i in range(10)], dtype=float)
+    est_p = np.array([[1.1 * i, 0, 0] for i in range(10)], dtype=float)  # every step 10 cm too long
+    t = np.arange(10, dtype=float)
+    rpe = RPE(max_diff=0.01, delta=1)
+    rpe.process_data((t, poses_at(est_p), t, poses_at(gt_p)))
+    np.testing.assert_allclose(rpe.values, 0.1, atol=1e-12)
+
+
+def test_psnr_ssim_depth_l1_hand_values():
+    ref = np.full((16, 16, 3), 0.5, dtype=np.float32)
+    img = ref + 0.1
+    assert psnr(img, ref) == pytest.approx(20.0, abs=1e-4)
+    assert psnr(ref, ref) == float("inf")
+    mask = np.zeros((16, 16), bool)
+    mask[:4] = True
+    img2 = ref.copy()
+    img2[4:] = 0.0  # errors only outside the mask
+    assert psnr(img2, ref, mask) == float("inf")
+    rng = np.random.default_rng(0)
+    tex = rng.random((32, 32, 3)).astype(np.float32)
+    assert ssim_np(tex, tex) == pytest.approx(1.0, abs=1e-6)
+    assert ssim_np(tex, rng.random((32, 32, 3)).astype(np.float32)) < 0.2
+    d_ref = np.array([[1.0, 2.0], [0.0, 4.0]])
+    d = np.array([[1.01, 1.97], [9.0, 4.0]])
+    assert depth_l1_cm(d, d_ref) == pytest.approx(100 * (0.01 + 0.03 + 0.0) / 3)
+
+
+def test_ssim_is_differentiable():
+    rng = np.random.default_rng(0)
+    a = torch.tensor(rng.random((3, 24, 24)), dtype=torch.float32, requires_grad=True)
+    b = torch.tensor(rng.random((3, 24, 24)), dtype=torch.float32)
+    (1 - ssim(a, b)).backward()
+    assert a.grad is not None and torch.isfinite(a.grad).all() and a.grad.abs().sum() > 0
+
+
+def test_metric_interface_statistics():
+    m = PSNR()
+    ref = np.zeros((4, 4, 3), np.float32)
+    m.process_data((ref + 0.1, ref))
+    m.process_data((ref + 0.01, ref))
+    assert m.get_statistic("mean") == pytest.approx(30.0, abs=1e-3)
+    assert set(m.get_all_statistics()) >= {"rmse", "mean", "median", "max"}
+    with pytest.raises(ValueError, match="unknown statistic"):
+        m.get_statistic("p99")
+    s, dl = SSIM(), DepthL1()
+    s.process_data((ref, ref))
+    dl.process_data((np.ones((2, 2)), np.full((2, 2), 1.5)))
+    assert dl.get_statistic("mean") == pytest.approx(50.0)
+
+
+def test_lpips_without_weights_reports_and_bad_weights_fail(tmp_path):
+    assert not LPIPS(None).available
+    bad = tmp_path / "lpips.pt"
+    bad.write_text("not a model")
+    with pytest.raises(ConfigError, match="lpips.pt"):
+        LPIPS(bad)
+    with pytest.raises(ConfigError, match="not found"):
+        LPIPS(tmp_path / "missing.pt")
+
+
+def test_lpips_with_a_local_torchscript_network(tmp_path):
+    class L2(torch.nn.Module):
+        def forward(self, x, y):
+            return ((x - y) ** 2).mean()
+
+    path = tmp_path / "net.pt"
+    torch.jit.script(L2()).save(str(path))
+    lp = LPIPS(path)
+    a = np.zeros((8, 8, 3), np.float32)
+    assert lp(a, a + 0.5) == pytest.approx(1.0)  # [-1, 1] scaling doubles the difference
+
+
+def test_stage_timer_and_memory():
+    t = StageTimer()
+    for _ in range(3):
+        with t("x"):
+            sum(range(1000))
+    s = t.summary()["x"]
+    assert s["calls"] == 3 and s["fps"] > 0
+    assert peak_rss_mb() > 10
+    table = metrics_table({"trajectory": {"ate_rmse_cm": 1.234}, "tracking": {"frames": 3}})
+    assert table.row_count == 2
