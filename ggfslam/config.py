@@ -121,8 +121,8 @@ class TrackingConfig(_Section):
 
     method: Literal["o3d_odometry"] = "o3d_odometry"
     """Tracker: ``o3d_odometry`` is the baseline (Open3D multi-scale RGB-D odometry, frame to frame)."""
-    odometry_term: Literal["hybrid", "color", "point_to_plane"] = "hybrid"
-    """Open3D odometry residual: photometric + geometric (hybrid), photometric only, or ICP point-to-plane."""
+    odometry_term: Literal["hybrid", "color"] = "hybrid"
+    """Open3D odometry residual: photometric + geometric (hybrid) or photometric only (color)."""
     depth_max: float = 4.0
     """Depth beyond this (m) is ignored by the tracker."""
     depth_diff_max: float = 0.07
@@ -131,8 +131,8 @@ class TrackingConfig(_Section):
     """Gauss-Newton iterations per pyramid level, finest first."""
     max_width: int = 320
     """Frames wider than this are downscaled for tracking (speed; intrinsics scaled to match)."""
-    constant_velocity: bool = True
-    """Start each odometry from the previous frame's motion."""
+    constant_velocity: bool = False
+    """Start each odometry from the previous frame's motion (hurts on wide-baseline keyframe sequences)."""
 
 
 class RenderConfig(_Section):

@@ -111,12 +111,10 @@ class ScanNetDataset(RGBDDataset):
         self.rgb_files = [colour[k] for k in numbers]
         self.depth_files = [depth[k] for k in numbers]
         self._stamps = self.frame_numbers / float(fps)  # [N]
-        self._explicit_camera = camera
-        self._cam: Camera | None = None  # needs an image's size: found on first use, keeping construction light
+        self._cam = camera if camera is not None else self._camera_from_files()  # now: fail before a run starts
 
-    def _find_camera(self) -> Camera:
-        if self._explicit_camera is not None:
-            return self._explicit_camera
+    def _camera_from_files(self) -> Camera:
+        # the depth grid is the output grid, so its size comes from the first depth image
         depth_h, depth_w = read_depth(self.depth_files[0], SCANNET_DEPTH_SCALE).shape
         intr = self.root / "intrinsic"
         depth_file, colour_file = intr / "intrinsic_depth.txt", intr / "intrinsic_color.txt"
@@ -134,8 +132,6 @@ class ScanNetDataset(RGBDDataset):
         return len(self.frame_numbers)
 
     def _raw_camera(self) -> Camera:
-        if self._cam is None:
-            self._cam = self._find_camera()
         return self._cam
 
     def _raw_timestamps(self) -> np.ndarray:

@@ -41,6 +41,7 @@ def associate(rgb_stamps: np.ndarray, depth_stamps: np.ndarray, max_diff: float)
 
     Each stamp is used at most once. Returns index arrays (rgb_idx [M], depth_idx [M]) sorted by rgb_idx.
     Ties are broken by the smaller rgb index, then the smaller depth index, so the result is deterministic.
+    Unlike associate.py (strict ``<``) a difference equal to ``max_diff`` (within 1 us of float rounding) counts.
     """
     if not max_diff >= 0:
         raise ValueError(f"max_diff must be >= 0, got {max_diff}")

@@ -14,10 +14,11 @@ from ggfslam.config import TrackingConfig
 from ggfslam.data.types import Camera, Frame
 from ggfslam.geometry.se3 import rigidity_error
 
-_METHODS = {
-    "hybrid": o3d.t.pipelines.odometry.Method.Hybrid,
-    "color": o3d.t.pipelines.odometry.Method.Intensity,
-    "point_to_plane": o3d.t.pipelines.odometry.Method.PointToPlane,
+# Open3D's legacy odometry: its tensor twin is faster but not repeatable run to run (threaded reductions),
+# and the deterministic mode needs the same trajectory every time.
+_JACOBIANS = {
+    "hybrid": o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm,
+    "color": o3d.pipelines.odometry.RGBDOdometryJacobianFromColorTerm,
 }
 
 
@@ -40,21 +41,26 @@ class OdometryBaselineTracker:
         scale = min(1.0, cfg.max_width / camera.width)
         self.size = (max(1, round(camera.width * scale)), max(1, round(camera.height * scale)))
         self.camera = camera.resized(*self.size) if scale < 1.0 else camera
-        self.intrinsics = o3d.core.Tensor(self.camera.K, o3d.core.Dtype.Float64)
-        self.criteria = [o3d.t.pipelines.odometry.OdometryConvergenceCriteria(int(n)) for n in cfg.iterations]
-        self.method = _METHODS[cfg.odometry_term]
-        self.prev: o3d.t.geometry.RGBDImage | None = None
+        c = self.camera
+        self.intrinsics = o3d.camera.PinholeCameraIntrinsic(c.width, c.height, c.fx, c.fy, c.cx, c.cy)
+        self.option = o3d.pipelines.odometry.OdometryOption(
+            iteration_number_per_pyramid_level=o3d.utility.IntVector([int(n) for n in cfg.iterations]),
+            depth_diff_max=cfg.depth_diff_max, depth_min=0.1, depth_max=cfg.depth_max)
+        self.jacobian = _JACOBIANS[cfg.odometry_term]()
+        self.prev: o3d.geometry.RGBDImage | None = None
         self.T_wc = np.eye(4)
         self.velocity = np.eye(4)  # T_prev_cur of the last step
 
-    def _rgbd(self, frame: Frame) -> o3d.t.geometry.RGBDImage:
+    def _rgbd(self, frame: Frame) -> o3d.geometry.RGBDImage:
         rgb, depth = frame.rgb, frame.depth
         if (frame.width, frame.height) != self.size:
             rgb = cv2.resize(rgb, self.size, interpolation=cv2.INTER_AREA)
             depth = cv2.resize(depth, self.size, interpolation=cv2.INTER_NEAREST)
-        color = o3d.t.geometry.Image(np.ascontiguousarray(rgb, dtype=np.float32))
-        dimg = o3d.t.geometry.Image(np.ascontiguousarray(depth, dtype=np.float32))
-        return o3d.t.geometry.RGBDImage(color, dimg)
+        # the legacy RGBDImage converts 8-bit colour to intensity correctly; float colour it misreads
+        color = o3d.geometry.Image(np.ascontiguousarray(np.round(rgb * 255.0), dtype=np.uint8))
+        dimg = o3d.geometry.Image(np.ascontiguousarray(depth, dtype=np.float32))
+        return o3d.geometry.RGBDImage.create_from_color_and_depth(
+            color, dimg, depth_scale=1.0, depth_trunc=self.cfg.depth_max, convert_rgb_to_intensity=True)
 
     def track(self, frame: Frame) -> TrackResult:
         """Estimate the camera-to-world pose of the next frame (the first frame defines the world)."""
@@ -63,19 +69,13 @@ class OdometryBaselineTracker:
             self.prev = cur
             return TrackResult(self.T_wc.copy(), True, 1.0)
         init = self.velocity if self.cfg.constant_velocity else np.eye(4)
-        ok, fitness = True, 0.0
-        try:
-            # source = current, target = previous: the result maps current-camera points into the previous camera
-            res = o3d.t.pipelines.odometry.rgbd_odometry_multi_scale(
-                cur, self.prev, self.intrinsics, o3d.core.Tensor(init),
-                1.0, self.cfg.depth_max, self.criteria, self.method,
-                o3d.t.pipelines.odometry.OdometryLossParams(depth_outlier_trunc=self.cfg.depth_diff_max),
-            )
-            T_prev_cur = res.transformation.numpy()
-            fitness = float(res.fitness)
-            if rigidity_error(T_prev_cur) is not None or fitness <= 0.0:
-                ok = False
-        except RuntimeError:
+        # source = current, target = previous: the result maps current-camera points into the previous camera
+        ok, T_prev_cur, info = o3d.pipelines.odometry.compute_rgbd_odometry(
+            cur, self.prev, self.intrinsics, init, self.jacobian, self.option)
+        T_prev_cur = np.asarray(T_prev_cur)
+        # Open3D's information matrix holds the correspondence count in its translation block
+        fitness = float(np.asarray(info)[5, 5]) / (self.size[0] * self.size[1]) if ok else 0.0
+        if ok and rigidity_error(T_prev_cur) is not None:
             ok = False
         if not ok:
             T_prev_cur = self.velocity
