@@ -5,6 +5,7 @@ import math
 
 from rich.console import Console
 from rich.table import Table
+from rich.text import Text
 
 # (section, key, label, format)
 ROWS = [
@@ -37,15 +38,17 @@ def _fmt(value, fmt: str) -> str:
 
 def metrics_table(metrics: dict, title: str = "ggfslam metrics") -> Table:
     """A two-column rich table of the metrics present in a ``metrics.json`` dict."""
-    table = Table(title=title, show_header=True, header_style="bold")
+    table = Table(title=Text(title) if title else None, show_header=True, header_style="bold")
     table.add_column("metric")
     table.add_column("value", justify="right")
     for section, key, label, fmt in ROWS:
         if key in metrics.get(section, {}):
-            table.add_row(label, _fmt(metrics[section][key], fmt))
+            table.add_row(Text(label), _fmt(metrics[section][key], fmt))  # Text: '[cm]' is not markup
     return table
 
 
 def print_metrics(metrics: dict, title: str = "ggfslam metrics", console: Console | None = None) -> None:
     """Print the metrics table."""
-    (console or Console()).print(metrics_table(metrics, title))
+    console = console or Console()
+    console.print(Text(title, style="bold"))  # above the table: a long title would wrap to the table's width
+    console.print(metrics_table(metrics, title=""))
