@@ -15,7 +15,7 @@ from ggfslam.data.textures import ProceduralTexture, lambert
 
 ROOM_MIN = np.array([-3.0, -2.5, 0.0])
 ROOM_MAX = np.array([3.0, 2.5, 3.0])
-TEXTURELESS_WALL = "wall_xpos"
+TEXTURELESS_WALL = "wall_yneg"  # the wall the "line" trajectory films
 TEXTURELESS_RGB = (0.72, 0.70, 0.66)
 
 

@@ -9,51 +9,110 @@ shows discs, polygons and strokes of many sizes: non-repetitive, high-contrast a
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 from scipy.spatial.transform import Rotation
 
 # (cell size in metres, probability that a cell holds a shape); the first layer fills whole cells
 _PATCH_CELL = 0.9
-_SHAPE_LAYERS = ((0.45, 0.9), (0.22, 0.9), (0.11, 0.85), (0.055, 0.8))
+_LAYERS = np.array([(0.45, 0.9), (0.22, 0.9), (0.11, 0.85), (0.055, 0.8)])
 
 # fixed directional light + ambient; |n . l| makes it two-sided so a surface looks the same from any side
 LIGHT_DIR = np.array([0.35, 0.55, 0.76]) / np.linalg.norm([0.35, 0.55, 0.76])
 AMBIENT = 0.5
 DIFFUSE = 0.5
 
-_M1 = np.uint32(0x7FEB352D)
-_M2 = np.uint32(0x846CA68B)
-_P = (np.uint32(0x9E3779B1), np.uint32(0x85EBCA77), np.uint32(0xC2B2AE3D), np.uint32(0x27D4EB2F))
+_MASK = 0xFFFFFFFF
+_MIN_BAR = 0.0075  # half thickness in metres of the thinnest bar
 
 
-def _mix(x: np.ndarray) -> np.ndarray:
-    """Avalanche a uint32 array (the 'lowbias32' integer hash)."""
-    x = x ^ (x >> np.uint32(16))
-    x = x * _M1
-    x = x ^ (x >> np.uint32(15))
-    x = x * _M2
-    return x ^ (x >> np.uint32(16))
+@njit(inline="always")
+def _mix(x: int) -> int:
+    """Avalanche a 32-bit value (the 'lowbias32' integer hash) held in an int64: products wrap, low bits stay exact."""
+    x = x ^ (x >> 16)
+    x = (x * 0x7FEB352D) & _MASK
+    x = x ^ (x >> 15)
+    x = (x * 0x846CA68B) & _MASK
+    return x ^ (x >> 16)
 
 
-def hash_cells(cells: np.ndarray, salt: np.ndarray) -> np.ndarray:
-    """uint32 hash [N] of integer cells [N, 3] and a per-point salt [N] (uint32)."""
-    c = cells.astype(np.int64).astype(np.uint32)  # wrap negatives; only the bits matter
-    h = _mix(salt ^ (c[:, 0] * _P[0]))
-    h = _mix(h ^ (c[:, 1] * _P[1]))
-    return _mix(h ^ (c[:, 2] * _P[2]))
+@njit(inline="always")
+def _hash3(c0: float, c1: float, c2: float, salt: int) -> int:
+    """Hash of an integer cell (given as floats from floor) and a salt."""
+    h = _mix(salt ^ ((np.int64(c0) * 0x9E3779B1) & _MASK))
+    h = _mix(h ^ ((np.int64(c1) * 0x85EBCA77) & _MASK))
+    return _mix(h ^ ((np.int64(c2) * 0xC2B2AE3D) & _MASK))
 
 
-def _bytes(h: np.ndarray) -> np.ndarray:
-    """Four uniform values in [0, 1) [N, 4] from the bytes of a uint32 hash [N]."""
-    shifts = np.array([0, 8, 16, 24], dtype=np.uint32)
-    return ((h[:, None] >> shifts) & np.uint32(0xFF)).astype(np.float32) * np.float32(1.0 / 256.0)
+@njit(inline="always")
+def _byte(h: int, k: int) -> float:
+    """k-th byte of a hash as a uniform value in [0, 1)."""
+    return ((h >> (8 * k)) & 0xFF) / 256.0
 
 
-def _random_colour(u: np.ndarray) -> np.ndarray:
-    """Colour [N, 3] from uniforms [N, 3]: spread brightness wide so the grey image (ORB's) has contrast."""
-    grey = 0.08 + 0.87 * u[:, :1]  # [N, 1]
-    tint = (u[:, 1:3] - 0.5) * 0.9  # [N, 2]
-    rgb = np.concatenate([grey + tint[:, :1], grey - 0.5 * (tint[:, :1] + tint[:, 1:]), grey + tint[:, 1:]], axis=1)
-    return np.clip(rgb, 0.02, 0.98)
+@njit(inline="always")
+def _colour(u0: float, u1: float, u2: float) -> tuple[float, float, float]:
+    """Random colour from three uniforms; brightness spread wide so the grey image (ORB's) has contrast."""
+    grey = 0.08 + 0.87 * u0
+    t0 = (u1 - 0.5) * 0.9
+    t1 = (u2 - 0.5) * 0.9
+    return (min(max(grey + t0, 0.02), 0.98), min(max(grey - 0.5 * (t0 + t1), 0.02), 0.98),
+            min(max(grey + t1, 0.02), 0.98))
+
+
+@njit(inline="always")
+def _offset(q: float, c: float, size: float, half: float, u: float) -> float:
+    """Signed offset (cell units) of q from a shape centre placed by u so that the shape stays in its cell."""
+    return (q / size - c) - (half + u * (1.0 - 2.0 * half))
+
+
+# serial on purpose: ~35 ms for 640x480 on one core, and no threading layer to fight BLAS/torch threads
+@njit(cache=True)
+def _albedo_kernel(points, obj, rotations, offsets, salts, layers, patch_cell, out):  # pragma: no cover (jit)
+    """Fill out [N, 3] with the albedo of points [N, 3] on objects obj [N] (see ProceduralTexture)."""
+    for i in range(points.shape[0]):
+        o = obj[i]
+        p0, p1, p2 = points[i, 0], points[i, 1], points[i, 2]
+        q0 = rotations[o, 0, 0] * p0 + rotations[o, 0, 1] * p1 + rotations[o, 0, 2] * p2 + offsets[o, 0]
+        q1 = rotations[o, 1, 0] * p0 + rotations[o, 1, 1] * p1 + rotations[o, 1, 2] * p2 + offsets[o, 1]
+        q2 = rotations[o, 2, 0] * p0 + rotations[o, 2, 1] * p1 + rotations[o, 2, 2] * p2 + offsets[o, 2]
+        salt = salts[o]
+        # coarse patchwork: every cell one colour
+        h = _hash3(np.floor(q0 / patch_cell), np.floor(q1 / patch_cell), np.floor(q2 / patch_cell), salt)
+        col = _colour(_byte(h, 0), _byte(h, 1), _byte(h, 2))
+        for layer in range(layers.shape[0]):
+            size = layers[layer, 0]
+            c0, c1, c2 = np.floor(q0 / size), np.floor(q1 / size), np.floor(q2 / size)
+            h1 = _hash3(c0, c1, c2, salt ^ ((0x1000193 * (layer + 1)) & _MASK))
+            if _byte(h1, 0) >= layers[layer, 1]:
+                continue
+            h2 = _mix(h1 ^ 0xA511E9B3)  # shape extent
+            h3 = _mix(h1 ^ 0x63D83595)  # centre
+            kind = _byte(h1, 1)
+            if kind < 0.35:  # ball
+                r = 0.12 + 0.33 * _byte(h2, 0)
+                d0 = _offset(q0, c0, size, r, _byte(h3, 0))
+                d1 = _offset(q1, c1, size, r, _byte(h3, 1))
+                d2 = _offset(q2, c2, size, r, _byte(h3, 2))
+                hit = d0 * d0 + d1 * d1 + d2 * d2 < r * r
+            else:
+                e0 = 0.12 + 0.33 * _byte(h2, 0)
+                e1 = 0.12 + 0.33 * _byte(h2, 1)
+                e2 = 0.12 + 0.33 * _byte(h2, 2)
+                if kind >= 0.7:  # bar: one long and two thin axes, like a pen stroke
+                    axis = min(int(_byte(h2, 3) * 3), 2)
+                    thin = max(0.03, _MIN_BAR / size)  # thinner than ~1.5 cm would alias into sparkle
+                    e0 = 0.25 + 0.2 * _byte(h2, 0) if axis == 0 else thin
+                    e1 = 0.25 + 0.2 * _byte(h2, 1) if axis == 1 else 1.5 * thin
+                    e2 = 0.25 + 0.2 * _byte(h2, 2) if axis == 2 else 2.0 * thin
+                hit = (abs(_offset(q0, c0, size, e0, _byte(h3, 0))) < e0
+                       and abs(_offset(q1, c1, size, e1, _byte(h3, 1))) < e1
+                       and abs(_offset(q2, c2, size, e2, _byte(h3, 2))) < e2)
+            if hit:
+                h4 = _mix(h1 ^ 0x2C1B3C6D)  # colour
+                col = _colour(_byte(h4, 0), _byte(h4, 1), _byte(h3, 3))
+        out[i, 0] = col[0]
+        out[i, 1] = col[1]
+        out[i, 2] = col[2]
 
 
 class ProceduralTexture:
@@ -66,7 +125,7 @@ class ProceduralTexture:
         self.rotations = Rotation.random(n_objects, random_state=rng).as_matrix().astype(np.float64)  # [n, 3, 3]
         # large offsets keep different objects (and seeds) in unrelated parts of texture space
         self.offsets = rng.uniform(0.0, 1000.0, size=(n_objects, 3))  # [n, 3]
-        self.salts = rng.integers(0, 2**32, size=n_objects, dtype=np.uint64).astype(np.uint32)  # [n]
+        self.salts = rng.integers(0, 2**32, size=n_objects, dtype=np.uint64).astype(np.int64)  # [n]
         self.flat = np.zeros(n_objects, dtype=bool)
         self.flat_rgb = np.zeros((n_objects, 3), dtype=np.float32)
         for obj, rgb in (flat_colours or {}).items():
@@ -75,60 +134,21 @@ class ProceduralTexture:
 
     def albedo(self, points: np.ndarray, object_ids: np.ndarray) -> np.ndarray:
         """Surface colour [N, 3] float32 in [0, 1] of world points [N, 3] on objects ``object_ids`` [N]."""
-        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        obj = np.asarray(object_ids, dtype=np.int64).reshape(-1)
-        q = np.einsum("nij,nj->ni", self.rotations[obj], points) + self.offsets[obj]  # [N, 3] texture space
-        salt = self.salts[obj]  # [N]
-        # coarse patchwork: every cell one colour
-        cells = np.floor(q / _PATCH_CELL)
-        h = hash_cells(cells, salt)
-        out = _random_colour(_bytes(h)[:, :3])  # [N, 3]
-        for layer, (size, prob) in enumerate(_SHAPE_LAYERS):
-            self._paint_layer(q, salt ^ np.uint32(0x1000193 * (layer + 1)), size, prob, out)
-        out = out.astype(np.float32)
+        points = np.asarray(points)
+        if points.dtype != np.float32:  # one compiled kernel: float32 points (um precision in a room)
+            points = points.astype(np.float32)
+        points = np.ascontiguousarray(points).reshape(-1, 3)
+        obj = np.ascontiguousarray(object_ids, dtype=np.int64).reshape(-1)
+        out = np.empty((len(points), 3), dtype=np.float32)
+        if len(points):
+            _albedo_kernel(points, obj, self.rotations, self.offsets, self.salts, _LAYERS, _PATCH_CELL, out)
         flat = self.flat[obj]
         if flat.any():
             out[flat] = self.flat_rgb[obj[flat]]
         return out
 
-    @staticmethod
-    def _paint_layer(q: np.ndarray, salt: np.ndarray, size: float, prob: float, out: np.ndarray) -> None:
-        """Paint one layer of random balls / boxes / bars (one per cell, inside its cell) over ``out`` in place."""
-        cells = np.floor(q / size)  # [N, 3]
-        local = q / size - cells  # [N, 3] in [0, 1): position inside the cell
-        h1 = hash_cells(cells, salt)
-        u1 = _bytes(h1)  # exists, kind, ... [N, 4]
-        has = u1[:, 0] < prob
-        if not has.any():
-            return
-        idx = np.nonzero(has)[0]
-        loc = local[idx]
-        u1 = u1[idx]
-        u2 = _bytes(_mix(h1[idx] ^ np.uint32(0xA511E9B3)))  # shape extent
-        u3 = _bytes(_mix(h1[idx] ^ np.uint32(0x63D83595)))  # centre + colour
-        u4 = _bytes(_mix(h1[idx] ^ np.uint32(0x2C1B3C6D)))  # colour
-        kind = u1[:, 1]
-        # half extents in cell units; bars have one long and two thin axes (stroke-like marks)
-        half = 0.12 + 0.33 * u2[:, :3]  # [M, 3]
-        bar = kind >= 0.7
-        thin = np.array([0.03, 0.045, 0.06], dtype=np.float32)
-        long_axis = (u2[:, 3] * 3).astype(np.int64).clip(0, 2)
-        half_bar = np.tile(thin, (len(idx), 1))
-        half_bar[np.arange(len(idx)), long_axis] = 0.25 + 0.2 * u2[np.arange(len(idx)), long_axis]
-        half = np.where(bar[:, None], half_bar, half)
-        ball = kind < 0.35
-        radius = half[:, 0]
-        ext = np.where(ball[:, None], radius[:, None], half)  # [M, 3] keep the shape inside its cell
-        centre = ext + u3[:, :3] * (1.0 - 2.0 * ext)
-        d = loc - centre
-        inside = np.where(ball, np.sum(d * d, axis=1) < radius * radius, np.all(np.abs(d) < half, axis=1))
-        if not inside.any():
-            return
-        colour = _random_colour(np.stack([u4[:, 0], u4[:, 1], u3[:, 3]], axis=1))
-        out[idx[inside]] = colour[inside]
-
 
 def lambert(normals: np.ndarray) -> np.ndarray:
     """Two-sided Lambertian + ambient light factor [N] for world normals [N, 3] (view-independent)."""
-    n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
-    return (AMBIENT + DIFFUSE * np.abs(n @ LIGHT_DIR)).astype(np.float32)
+    n = np.asarray(normals, dtype=np.float32).reshape(-1, 3)
+    return AMBIENT + DIFFUSE * np.abs(n @ LIGHT_DIR.astype(np.float32))
