@@ -122,8 +122,8 @@ def synth(
 ):
     """Render a synthetic RGB-D sequence with ground truth to disk."""
     from ggfslam.config import SyntheticConfig, config_from_dict
-    from ggfslam.data.sources import camera_from_config, generate_synthetic
-    from ggfslam.errors import ConfigError, RunDirError
+    from ggfslam.data.sources import generate_synthetic
+    from ggfslam.errors import RunDirError
 
     syn = config_from_dict({"dataset": {"kind": "synthetic", "synthetic": {
         "source": source, "n_frames": frames, "width": width, "height": height, "trajectory": trajectory,
@@ -133,13 +133,9 @@ def synth(
     assert isinstance(syn, SyntheticConfig)
     camera = None
     if camera_yaml is not None:
-        import yaml
+        from ggfslam.data.camera_file import read_camera_yaml
 
-        if not camera_yaml.is_file():
-            raise ConfigError(f"{camera_yaml}: camera file not found")
-        cam_cfg = config_from_dict({"dataset": {"kind": "synthetic", "camera": yaml.safe_load(camera_yaml.read_text())}},
-                                   str(camera_yaml)).dataset
-        camera = camera_from_config(cam_cfg)
+        camera = read_camera_yaml(camera_yaml)
     if out.exists() and any(out.iterdir()):
         if not overwrite:
             raise RunDirError(f"{out}: folder exists and is not empty; pass --overwrite or choose another folder")

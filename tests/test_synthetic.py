@@ -11,14 +11,13 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from ggfslam.data.imageio import read_depth, read_rgb
+from ggfslam.data.replica import read_cam_params, read_matrix_trajectory
 from ggfslam.data.synthetic import (
     TRAJECTORY_KINDS,
     SyntheticSequence,
     _scene_caster,
     kinect_depth_noise,
     make_scene,
-    read_replica_camera,
-    read_replica_poses,
     render_frame,
     render_mesh_sequence,
     render_replica_sequence,
@@ -326,8 +325,8 @@ def test_replica_poses_are_opencv_camera_to_world(replica_root):
     """Rendering office0's mesh at traj.txt pose 0 reproduces the dataset's own depth image 0."""
     from ggfslam.data.synthetic import MeshRaycaster
 
-    cam = read_replica_camera(replica_root / "cam_params.json")
-    poses = read_replica_poses(replica_root / "traj.txt")
+    cam = read_cam_params(replica_root / "cam_params.json")
+    poses = read_matrix_trajectory(replica_root / "traj.txt")
     assert len(poses) == 2000
     caster = MeshRaycaster(o3d.io.read_triangle_mesh(str(replica_root / "office0_mesh.ply")))
     ref = read_depth(replica_root / "results" / "depth000000.png", 6553.5)
@@ -347,7 +346,7 @@ def test_replica_poses_are_opencv_camera_to_world(replica_root):
 def test_render_replica_sequence(tmp_path, replica_root):
     out = render_replica_sequence(replica_root, tmp_path / "rep", n_frames=3, width=120, height=68, stride=2)
     stamps, poses = read_tum_trajectory(out / "groundtruth.txt")
-    np.testing.assert_allclose(poses, read_replica_poses(replica_root / "traj.txt")[[0, 2, 4]], atol=1e-6)
+    np.testing.assert_allclose(poses, read_matrix_trajectory(replica_root / "traj.txt")[[0, 2, 4]], atol=1e-6)
     np.testing.assert_allclose(stamps, np.array([0, 2, 4]) / 30.0, atol=1e-6)
     depth_lines = [ln.split() for ln in (out / "depth.txt").read_text().splitlines() if not ln.startswith("#")]
     d = read_depth(out / depth_lines[0][1], 5000.0)

@@ -8,7 +8,7 @@ import numpy as np
 from ggfslam.data.base import RGBDDataset
 from ggfslam.data.imageio import read_depth, read_rgb
 from ggfslam.data.paths import list_files, natural_key, require_dir
-from ggfslam.data.tum import CAMERA_FILE, read_camera_yaml
+from ggfslam.data.camera_file import CAMERA_FILE, read_camera_yaml
 from ggfslam.data.types import Camera
 from ggfslam.errors import DatasetError
 

@@ -38,7 +38,7 @@ def detect_kind(root: str | Path) -> str:
         return "scannet"
     if (root / "rgb").is_dir() and (root / "depth").is_dir():
         return "folder"
-    raise DatasetError(root, f"cannot tell the dataset format of {root}: expected one of {'; '.join(_LAYOUTS)}")
+    raise DatasetError(root, f"cannot tell the dataset format of this folder: expected one of {'; '.join(_LAYOUTS)}")
 
 
 def open_dataset(

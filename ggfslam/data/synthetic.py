@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 import open3d as o3d
 
-from ggfslam.data.paths import read_number_rows
+from ggfslam.data.replica import read_cam_params, read_matrix_trajectory
 from ggfslam.data.scene_builder import ROOM_MAX, ROOM_MIN, SceneMesh, make_scene
 from ggfslam.data.types import Camera, Frame
 from ggfslam.data.writer import write_tum_sequence
@@ -29,8 +29,7 @@ from ggfslam.geometry.se3 import look_at, rigidity_error, so3_exp
 __all__ = [
     "GENERATOR_VERSION", "TRAJECTORY_KINDS", "SceneMesh", "MeshRaycaster", "SyntheticSequence", "make_scene",
     "synthetic_camera", "trajectory", "render_frame", "kinect_depth_noise", "generate_sequence",
-    "write_synthetic_sequence", "render_mesh_sequence", "render_replica_sequence", "read_replica_camera",
-    "read_replica_poses",
+    "write_synthetic_sequence", "render_mesh_sequence", "render_replica_sequence",
 ]
 
 GENERATOR_VERSION = "ggfslam-synthetic/1"
@@ -552,34 +551,8 @@ def render_replica_sequence(
         mesh_path = found[0]
     else:
         mesh_path = root / mesh_name
-    camera = read_replica_camera(root / "cam_params.json").resized(width, height)
-    poses = read_replica_poses(root / "traj.txt")
+    camera = read_cam_params(root / "cam_params.json").resized(width, height)
+    poses = read_matrix_trajectory(root / "traj.txt")
     index = np.arange(0, len(poses), stride)[:n_frames]
     return render_mesh_sequence(mesh_path, poses[index], camera, out_dir, timestamps=index / 30.0,
                                 depth_noise=depth_noise, seed=seed, overwrite=overwrite)
-
-
-def read_replica_camera(path: str | Path) -> Camera:
-    """Intrinsics from a NICE-SLAM ``cam_params.json`` (``{"camera": {w, h, fx, fy, cx, cy, scale}}``)."""
-    path = Path(path)
-    if not path.is_file():
-        raise DatasetError(path, "camera parameter file not found")
-    try:
-        c = json.loads(path.read_text())["camera"]
-        return Camera(fx=float(c["fx"]), fy=float(c["fy"]), cx=float(c["cx"]), cy=float(c["cy"]),
-                      width=int(c["w"]), height=int(c["h"]), depth_scale=float(c.get("scale", 6553.5)))
-    except (ValueError, KeyError, TypeError) as e:
-        raise DatasetError(path, f"expected {{'camera': {{w, h, fx, fy, cx, cy}}}} ({type(e).__name__}: {e})") from None
-
-
-def read_replica_poses(path: str | Path) -> np.ndarray:
-    """Camera-to-world poses [N, 4, 4] from a NICE-SLAM Replica ``traj.txt`` (16 numbers per line, row-major)."""
-    rows = read_number_rows(path, 16)
-    if not rows:
-        raise DatasetError(path, "trajectory file has no poses")
-    poses = np.stack([values.reshape(4, 4) for _, values in rows])
-    for lineno, values in rows:
-        err = rigidity_error(values.reshape(4, 4))
-        if err is not None:
-            raise DatasetError(path, err, lineno)
-    return poses

@@ -5,20 +5,11 @@ from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
-import yaml
-
+from ggfslam.data.camera_file import CAMERA_FILE, write_camera_yaml
 from ggfslam.data.imageio import write_depth, write_rgb
 from ggfslam.data.trajectory_io import write_tum_trajectory
 from ggfslam.data.types import Camera, Frame
 from ggfslam.errors import RunDirError
-
-CAMERA_FILE = "camera.yaml"
-
-
-def write_camera_yaml(path: str | Path, camera: Camera) -> None:
-    """Save intrinsics as YAML (fx, fy, cx, cy, width, height, depth_scale, distortion)."""
-    Path(path).write_text(yaml.safe_dump(camera.to_dict(), sort_keys=False))
-
 
 def write_tum_sequence(
     out_dir: str | Path,
