@@ -119,20 +119,84 @@ class DatasetConfig(_Section):
 class TrackingConfig(_Section):
     """Camera tracking (the frame-rate half of the system)."""
 
-    method: Literal["o3d_odometry"] = "o3d_odometry"
-    """Tracker: ``o3d_odometry`` is the baseline (Open3D multi-scale RGB-D odometry, frame to frame)."""
+    method: Literal["orb", "o3d_odometry"] = "orb"
+    """``orb``: ORB features + local map + PnP + GTSAM bundle adjustment (the system's frontend);
+    ``o3d_odometry``: a baseline (Open3D RGB-D odometry frame to frame, no map)."""
+    n_features: int = 1500
+    """ORB keypoints kept per frame (spread over a grid of cells)."""
+    scale_factor: float = 1.2
+    """ORB pyramid scale between levels."""
+    n_levels: int = 8
+    """ORB pyramid levels."""
+    fast_threshold: int = 20
+    """FAST corner threshold of the ORB detector."""
+    grid_cells: tuple[int, int] = (8, 6)
+    """Cells (columns, rows) over which keypoints are spread evenly."""
+    depth_min: float = 0.1
+    """Keypoints with closer depth are treated as having no depth (m)."""
+    depth_max: float = 6.0
+    """Keypoints with farther depth are treated as having no depth (m); also the baseline's cut-off."""
+    virtual_baseline: float = 0.08
+    """Baseline (m) of the virtual stereo camera that turns depth into a right-image coordinate (RGB-D ORB-SLAM)."""
+    match_radius: float = 12.0
+    """Search radius (px, at pyramid level 0) when matching projected map points."""
+    match_max_distance: int = 64
+    """Largest Hamming distance of an accepted descriptor match (of 256 bits)."""
+    match_ratio: float = 0.9
+    """Best-to-second-best Hamming ratio below which a projected match is accepted."""
+    min_matches: int = 25
+    """Fewer inlier matches than this and tracking is considered lost."""
+    pixel_sigma: float = 1.0
+    """Keypoint noise (px) at pyramid level 0; multiplied by the level's scale."""
+    keyframe_max_frames: int = 20
+    """Insert a keyframe at least every this many frames."""
+    keyframe_tracked_ratio: float = 0.75
+    """Insert a keyframe when fewer than this fraction of the reference keyframe's map points are tracked."""
+    keyframe_translation: float = 0.15
+    """Insert a keyframe after moving this far (m) from the reference keyframe."""
+    keyframe_rotation_deg: float = 15.0
+    """Insert a keyframe after turning this much (degrees) from the reference keyframe."""
+    local_map_keyframes: int = 12
+    """How many covisible keyframes supply map points to track against."""
+    dense_fallback: bool = True
+    """Where ORB matching fails (textureless views), estimate the motion by dense RGB-D odometry instead."""
+    dense_link_sigmas: tuple[float, float] = (0.02, 0.03)
+    """Rotation (rad) and translation (m) sigmas of the factor tying a dense-odometry keyframe to its reference."""
+    relocalization_candidates: int = 5
+    """Keyframes tried (best place-recognition scores first) when relocalizing."""
     odometry_term: Literal["hybrid", "color"] = "hybrid"
-    """Open3D odometry residual: photometric + geometric (hybrid) or photometric only (color)."""
-    depth_max: float = 4.0
-    """Depth beyond this (m) is ignored by the tracker."""
+    """Dense odometry (baseline and fallback): Open3D odometry residual, photometric + geometric (hybrid) or photometric (color)."""
     depth_diff_max: float = 0.07
-    """Largest depth difference (m) for a correspondence in the odometry."""
+    """Dense odometry: largest depth difference (m) of an odometry correspondence."""
     iterations: list[int] = [10, 5, 3]
-    """Gauss-Newton iterations per pyramid level, finest first."""
+    """Dense odometry: Gauss-Newton iterations per pyramid level, finest first."""
     max_width: int = 320
-    """Frames wider than this are downscaled for tracking (speed; intrinsics scaled to match)."""
+    """Dense odometry: frames wider than this are downscaled (intrinsics scaled to match)."""
     constant_velocity: bool = False
-    """Start each odometry from the previous frame's motion (hurts on wide-baseline keyframe sequences)."""
+    """Baseline only: start each odometry from the previous frame's motion."""
+
+
+class BackendConfig(_Section):
+    """Factor graph: local bundle adjustment and loop closure (GTSAM)."""
+
+    window: int = 8
+    """Keyframes optimized by local bundle adjustment (older covisible keyframes are held fixed)."""
+    iterations: int = 10
+    """Levenberg-Marquardt iterations per local bundle adjustment."""
+    huber_stereo: float = 2.796
+    """Huber threshold of the whitened RGB-D (stereo) residual, sqrt(chi2_0.95(3 dof)) as in ORB-SLAM."""
+    huber_mono: float = 2.448
+    """Huber threshold of the whitened 2-D reprojection residual (observations without depth)."""
+    outlier_chi2_stereo: float = 7.815
+    """Observations whose whitened squared error exceeds this after BA are dropped (3 dof)."""
+    outlier_chi2_mono: float = 5.991
+    """Same for observations without depth (2 dof)."""
+    min_observations: int = 2
+    """Map points seen by fewer keyframes than this, three keyframes after creation, are culled."""
+    concurrent: bool = False
+    """Run bundle adjustment in a background thread (tracking never waits); False = sequential, repeatable."""
+    loop_closure: bool = True
+    """Detect revisited places and correct the whole trajectory by pose-graph optimization."""
 
 
 class RenderConfig(_Section):
@@ -175,6 +239,8 @@ class Config(_Section):
     """Input sequence."""
     tracking: TrackingConfig = TrackingConfig()
     """Camera tracking."""
+    backend: BackendConfig = BackendConfig()
+    """Factor graph and loop closure."""
     render: RenderConfig = RenderConfig()
     """Rasterizer."""
     eval: EvalConfig = EvalConfig()

@@ -10,6 +10,7 @@ from ggfslam.errors import RunDirError
 CONFIG_FILE = "config.yaml"
 METRICS_FILE = "metrics.json"
 TRAJECTORY_FILE = "trajectory.txt"
+KEYFRAMES_FILE = "keyframes.txt"
 GROUNDTRUTH_FILE = "groundtruth.txt"
 TRACKING_LOG_FILE = "tracking.txt"
 RUN_INFO_FILE = "run.json"

@@ -21,7 +21,7 @@ from ggfslam.errors import RunDirError
 from ggfslam.eval.perf import StageTimer, peak_rss_mb
 from ggfslam.eval.trajectory import trajectory_metrics
 from ggfslam.rundir import (
-    CONFIG_FILE, GROUNDTRUTH_FILE, LOG_FILE, METRICS_FILE, RUN_INFO_FILE, TRACKING_LOG_FILE, TRAJECTORY_FILE,
+    CONFIG_FILE, GROUNDTRUTH_FILE, KEYFRAMES_FILE, LOG_FILE, METRICS_FILE, RUN_INFO_FILE, TRACKING_LOG_FILE, TRAJECTORY_FILE,
     prepare_run_dir, read_json, require_run_dir, write_json,
 )
 
@@ -46,7 +46,11 @@ def make_tracker(config: Config, dataset: RGBDDataset):
         from ggfslam.frontend.odometry_baseline import OdometryBaselineTracker
 
         return OdometryBaselineTracker(dataset.camera, config.tracking)
-    raise ValueError(f"unknown tracking.method {config.tracking.method!r}")
+    from ggfslam.backend.backend import Backend
+    from ggfslam.frontend.tracker import OrbTracker
+
+    backend = Backend(dataset.camera, config.tracking, config.backend)
+    return OrbTracker(dataset.camera, config.tracking, backend)
 
 
 def _progress(enabled: bool):
@@ -85,7 +89,7 @@ def run(config: Config, out_dir: str | Path, overwrite: bool = False, progress: 
         log.info("run %s on %s", config.name, dataset.describe())
         tracker = make_tracker(config, dataset)
         timer = StageTimer()
-        stamps, poses, lines, lost = [], [], ["# index timestamp ok fitness ms"], 0
+        lines = ["# index timestamp state keyframe matches fitness ms"]
         show = config.runtime.progress if progress is None else progress
         t_start = time.perf_counter()
         with _progress(show and sys.stderr.isatty()) as bar:
@@ -97,15 +101,19 @@ def run(config: Config, out_dir: str | Path, overwrite: bool = False, progress: 
                 with timer("tracking"):
                     res = tracker.track(frame)
                 ms = 1000 * (time.perf_counter() - t0)
-                lost += 0 if res.ok else 1
-                stamps.append(frame.timestamp)
-                poses.append(res.T_wc)
-                lines.append(f"{frame.index} {frame.timestamp:.6f} {int(res.ok)} {res.fitness:.4f} {ms:.1f}")
+                lines.append(f"{frame.index} {frame.timestamp:.6f} {res.state.value} {int(res.keyframe)} "
+                             f"{res.matches} {res.fitness:.4f} {ms:.1f}")
                 bar.update(task, advance=1, fps=timer.fps("tracking"))
+        with timer("finish"):
+            tracker.finish()  # the backend's queued keyframes: their corrections belong in the trajectory
         wall = time.perf_counter() - t_start
-        stamps_a, poses_a = np.array(stamps), np.stack(poses)
+        stamps_a, poses_a, lost_a = tracker.trajectory()  # every frame, through its optimized reference keyframe
         write_tum_trajectory(run_dir / TRAJECTORY_FILE, stamps_a, poses_a,
                              header=f"ggfslam {__version__} {tracker.name}: camera-to-world, all frames")
+        kf_traj = tracker.keyframe_trajectory()
+        if kf_traj is not None:
+            write_tum_trajectory(run_dir / KEYFRAMES_FILE, *kf_traj,
+                                 header=f"ggfslam {__version__} {tracker.name}: camera-to-world, keyframes")
         (run_dir / TRACKING_LOG_FILE).write_text("\n".join(lines) + "\n")
         gt = dataset.gt_poses
         if gt is not None:
@@ -114,12 +122,13 @@ def run(config: Config, out_dir: str | Path, overwrite: bool = False, progress: 
         metrics = {
             "sequence": {"dataset": dataset.describe(), "frames": n, "width": dataset.camera.width,
                          "height": dataset.camera.height},
-            "tracking": {"method": tracker.name, "frames": n, "frames_lost": lost, "fps": timer.fps("tracking")},
+            "tracking": {"method": tracker.name, "frames": n, "frames_lost": int(lost_a.sum()),
+                         "fps": timer.fps("tracking")},
+            "backend": tracker.summary(),
             "system": {"wall_seconds": wall, "peak_rss_mb": peak_rss_mb(), "stages": timer.summary()},
         }
         if gt is not None:
-            metrics["trajectory"] = trajectory_metrics(stamps_a, poses_a, dataset.timestamps, gt,
-                                                       config.eval.max_time_diff, config.eval.rpe_delta)
+            metrics["trajectory"] = _trajectory_metrics(stamps_a, poses_a, dataset.timestamps, gt, config)
         write_json(run_dir / METRICS_FILE, metrics)
         info = read_json(run_dir / RUN_INFO_FILE)
         info.update(status="finished", finished=datetime.now(timezone.utc).isoformat(timespec="seconds"))
@@ -134,6 +143,16 @@ def run(config: Config, out_dir: str | Path, overwrite: bool = False, progress: 
     finally:
         log.removeHandler(handler)
         handler.close()
+
+
+def _trajectory_metrics(est_stamps, est_poses, gt_stamps, gt_poses, config: Config) -> dict:
+    """ATE/RPE of a run; a trajectory that cannot be scored (e.g. never left the origin) says why instead."""
+    try:
+        return trajectory_metrics(est_stamps, est_poses, gt_stamps, gt_poses, config.eval.max_time_diff,
+                                  config.eval.rpe_delta)
+    except ValueError as e:
+        log.warning("trajectory not scored: %s", e)
+        return {"ate_rmse_cm": float("nan"), "error": str(e)}
 
 
 def evaluate(run_dir: str | Path) -> dict:
@@ -152,7 +171,6 @@ def evaluate(run_dir: str | Path) -> dict:
             raise RunDirError(f"{run_dir}: the sequence has no ground truth, so there is no ATE to compute")
         gt_stamps, gt_poses = dataset.timestamps, dataset.gt_poses
     metrics = read_json(run_dir / METRICS_FILE)
-    metrics["trajectory"] = trajectory_metrics(est_stamps, est_poses, gt_stamps, gt_poses,
-                                               config.eval.max_time_diff, config.eval.rpe_delta)
+    metrics["trajectory"] = _trajectory_metrics(est_stamps, est_poses, gt_stamps, gt_poses, config)
     write_json(run_dir / METRICS_FILE, metrics)
     return metrics

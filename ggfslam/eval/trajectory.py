@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 from evo.core import metrics as evo_metrics
 from evo.core import sync
+from evo.core.geometry import GeometryException
 from evo.core.trajectory import PoseTrajectory3D
 
 from ggfslam.eval.base import Metric
@@ -47,7 +48,10 @@ class ATE(Metric):
         if self.align:
             if ref.num_poses < 3:
                 raise ValueError(f"ATE alignment needs at least 3 associated poses, got {ref.num_poses}")
-            r, t, _ = est.align(ref, correct_scale=False)
+            try:
+                r, t, _ = est.align(ref, correct_scale=False)
+            except GeometryException as e:  # e.g. every estimate at one point: a lost tracker
+                raise ValueError(f"cannot align the trajectories: {e}") from None
             self.alignment = np.eye(4)
             self.alignment[:3, :3], self.alignment[:3, 3] = r, t
         ape = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)

@@ -1,0 +1,119 @@
+"""The backend: owns the map, runs local bundle adjustment, landmark culling and loop closure per keyframe.
+
+In sequential mode every keyframe is processed before tracking continues (repeatable runs); in concurrent mode a
+worker thread takes keyframes from a queue and tracking never waits for it.
+"""
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ggfslam.backend.local_ba import BAStats, local_bundle_adjustment
+from ggfslam.backend.slam_map import KeyFrame, SlamMap
+from ggfslam.config import BackendConfig, TrackingConfig
+from ggfslam.data.types import Camera
+
+log = logging.getLogger("ggfslam.backend")
+
+
+@dataclass
+class BackendStats:
+    """Counters and timings of the backend over a run."""
+
+    keyframes: int = 0
+    ba_runs: int = 0
+    ba_seconds: list[float] = field(default_factory=list)
+    landmarks_culled: int = 0
+    outliers_removed: int = 0
+    loops: list[dict] = field(default_factory=list)
+
+
+class Backend:
+    """Processes keyframes from the frontend; everyone asks it (its map) for poses and landmarks."""
+
+    def __init__(self, camera: Camera, tcfg: TrackingConfig, bcfg: BackendConfig):
+        self.camera, self.tcfg, self.bcfg = camera, tcfg, bcfg
+        self.map = SlamMap()
+        self.stats = BackendStats()
+        self.loop_hook = None  # callable(kf) set by loop closure integration
+        self._queue: queue.Queue | None = None
+        self._thread: threading.Thread | None = None
+        self._error: BaseException | None = None
+        if bcfg.concurrent:
+            self._queue = queue.Queue()
+            self._thread = threading.Thread(target=self._worker, name="ggfslam-backend", daemon=True)
+            self._thread.start()
+
+    # --- keyframes in ---------------------------------------------------------------------------
+    def insert_keyframe(self, kf: KeyFrame) -> None:
+        """Hand a new keyframe (already in the map) to the backend."""
+        self.stats.keyframes += 1
+        if self._queue is not None:
+            if self._error is not None:
+                raise RuntimeError("backend worker failed") from self._error
+            self._queue.put(kf.id)
+        else:
+            self._process(kf.id)
+
+    def _worker(self) -> None:
+        while True:
+            kf_id = self._queue.get()
+            try:
+                if kf_id is None:
+                    return
+                self._process(kf_id)
+            except BaseException as e:  # surfaced to the tracking thread at the next keyframe / finish
+                self._error = e
+                log.exception("backend worker failed")
+                return
+            finally:
+                self._queue.task_done()
+
+    def _process(self, kf_id: int) -> None:
+        self._cull(kf_id)
+        stats: BAStats | None = local_bundle_adjustment(self.map, kf_id, self.camera, self.tcfg, self.bcfg)
+        if stats is not None:
+            self.stats.ba_runs += 1
+            self.stats.ba_seconds.append(stats.seconds)
+            self.stats.outliers_removed += stats.outliers
+        if self.loop_hook is not None and self.bcfg.loop_closure:
+            self.loop_hook(self.map.keyframes[kf_id])
+
+    def _cull(self, kf_id: int) -> None:
+        """Drop landmarks that later keyframes do not confirm (ORB-SLAM's recent map point culling)."""
+        m = self.map
+        with m.lock:
+            ids = m.alive_ids()
+            if len(ids) == 0:
+                return
+            age = kf_id - m.created_by[ids]  # keyframes since creation
+            n_obs = np.array([len(m.observations[i]) for i in ids])
+            found_ratio = m.n_found[ids] / np.maximum(m.n_visible[ids], 1)
+            bad = ((age >= 2) & (found_ratio < 0.25)) | ((age >= 3) & (n_obs < self.bcfg.min_observations))
+            for lm in ids[bad]:
+                m.remove_landmark(int(lm))
+            self.stats.landmarks_culled += int(bad.sum())
+
+    def finish(self) -> None:
+        """Wait for queued keyframes to be processed and stop the worker."""
+        if self._queue is not None and self._thread is not None and self._thread.is_alive():
+            self._queue.put(None)
+            self._thread.join()
+        if self._error is not None:
+            raise RuntimeError("backend worker failed") from self._error
+
+    def summary(self) -> dict:
+        """Backend figures for metrics.json."""
+        s = self.stats
+        return {
+            "keyframes": s.keyframes, "landmarks": int(self.map.alive.sum()), "ba_runs": s.ba_runs,
+            "ba_ms_mean": 1000 * float(np.mean(s.ba_seconds)) if s.ba_seconds else 0.0,
+            "ba_ms_max": 1000 * float(np.max(s.ba_seconds)) if s.ba_seconds else 0.0,
+            "landmarks_culled": s.landmarks_culled, "outliers_removed": s.outliers_removed,
+            "loops": len(s.loops),
+        }

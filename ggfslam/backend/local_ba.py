@@ -1,0 +1,110 @@
+"""Local bundle adjustment: a window of covisible keyframes and their landmarks, older observers held fixed."""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from ggfslam.backend.graph import L, X, calibrations, is_stereo_factor, observation_factor, whitened_chi2
+from ggfslam.backend.slam_map import SlamMap
+from ggfslam.config import BackendConfig, TrackingConfig
+from ggfslam.data.types import Camera
+
+
+_FIXED_NOISE = gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)
+
+
+@dataclass
+class BAStats:
+    """What one bundle adjustment did."""
+
+    keyframes: int
+    fixed: int
+    landmarks: int
+    factors: int
+    outliers: int
+    error_before: float
+    error_after: float
+    seconds: float
+
+
+def local_bundle_adjustment(smap: SlamMap, kf_id: int, camera: Camera, tcfg: TrackingConfig,
+                            bcfg: BackendConfig) -> BAStats | None:
+    """Optimize the window around keyframe ``kf_id`` with LM and drop outlier observations; None if too small."""
+    t0 = time.perf_counter()
+    level_scale = tcfg.scale_factor ** np.arange(tcfg.n_levels)
+    with smap.lock:  # snapshot, so tracking can go on while the optimizer runs
+        window = smap.local_keyframes(kf_id, bcfg.window)
+        lms = smap.landmarks_of(window)
+        obs = []  # (kf, lm, kp)
+        for lm in lms:
+            for k, kp in smap.observations[lm].items():
+                obs.append((k, int(lm), kp))
+        observers = {k for k, _, _ in obs}
+        fixed = observers - set(window)
+        if not fixed:  # the gauge: hold the oldest keyframe so the window cannot drift as a whole
+            fixed = {min(window)}
+        # dense-odometry links (keyframe, other keyframe, T_other_keyframe) hold textureless keyframes in place
+        links = [(k, *smap.keyframes[k].meta["odometry_link"]) for k in window
+                 if "odometry_link" in smap.keyframes[k].meta]
+        for _, other, _ in links:
+            if other not in observers and other not in window:
+                fixed.add(other)
+        observers |= {other for _, other, _ in links} | set(window)
+        poses = {k: smap.keyframes[k].T_wc.copy() for k in observers}
+        feats = {k: smap.keyframes[k].features for k in observers}
+        positions = smap.positions[lms].copy()
+    if len(window) - len(fixed & set(window)) < 1 or len(lms) < 10:
+        return None
+    mono, stereo = calibrations(camera, tcfg.virtual_baseline)
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    for k, T in poses.items():
+        values.insert(X(k), gtsam.Pose3(T))
+        if k in fixed:
+            # a stiff prior rather than NonlinearEquality: a constrained noise model forces slow QR elimination
+            graph.add(gtsam.PriorFactorPose3(X(k), gtsam.Pose3(T), _FIXED_NOISE))
+    for lm, p in zip(lms, positions):
+        values.insert(L(int(lm)), gtsam.Point3(*p))
+    s_rot, s_trans = tcfg.dense_link_sigmas
+    link_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([s_rot] * 3 + [s_trans] * 3))
+    for k, other, T_other_k in links:
+        graph.add(gtsam.BetweenFactorPose3(X(other), X(k), gtsam.Pose3(T_other_k), link_noise))
+    sigmas, factors = [], []
+    for k, lm, kp in obs:
+        f = feats[k]
+        sigma = tcfg.pixel_sigma * level_scale[f.octave[kp]]
+        factor = observation_factor(k, lm, f.uv[kp], f.depth[kp], sigma, mono, stereo,
+                                    bcfg.huber_stereo, bcfg.huber_mono)
+        graph.add(factor)
+        factors.append(factor)
+        sigmas.append(sigma)
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(bcfg.iterations)
+    err0 = graph.error(values)
+    try:
+        result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+    except RuntimeError:  # an indeterminate system (a landmark seen once without depth): keep the old estimate
+        return None
+    err1 = graph.error(result)
+    # outliers: whitened error above the chi-square bound, or behind the camera
+    outliers = []
+    for (k, lm, kp), sigma, factor in zip(obs, sigmas, factors):
+        chi2 = whitened_chi2(factor, result, sigma)
+        bound = bcfg.outlier_chi2_stereo if is_stereo_factor(factor) else bcfg.outlier_chi2_mono
+        p_c = result.atPose3(X(k)).transformTo(result.atPoint3(L(lm)))
+        if chi2 > bound or p_c[2] <= 0:
+            outliers.append((lm, k))
+    with smap.lock:
+        for k in window:
+            if k not in fixed and k in smap.keyframes:
+                smap.keyframes[k].T_wc = result.atPose3(X(k)).matrix()
+        for lm in lms:
+            if smap.alive[lm]:
+                smap.positions[lm] = result.atPoint3(L(int(lm)))
+        for lm, k in outliers:
+            smap.remove_observation(lm, k)
+    return BAStats(len(window), len(fixed), len(lms), len(obs), len(outliers), err0, err1,
+                   time.perf_counter() - t0)

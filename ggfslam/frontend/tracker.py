@@ -1,0 +1,328 @@
+"""The feature frontend: ORB tracking against the local map, keyframe selection, relocalization.
+
+Per frame: predict the pose with a constant-velocity model, match the previous frame's map points by
+projection (else the reference keyframe's by descriptor + PnP RANSAC), refine the pose (motion-only, robust),
+then search the local map (landmarks of covisible keyframes) and refine again. When tracking fails the frame
+is LOST and the next frames try to relocalize against the keyframes. Every frame's pose is stored relative
+to its reference keyframe, so backend corrections (BA, loop closure) move the whole trajectory.
+"""
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ggfslam.backend.backend import Backend
+from ggfslam.backend.slam_map import KeyFrame
+from ggfslam.config import TrackingConfig
+from ggfslam.data.types import Camera, Frame
+from ggfslam.frontend.dense_odometry import DenseOdometry
+from ggfslam.frontend.features import Features, OrbExtractor
+from ggfslam.frontend.matching import match_projected, match_ratio
+from ggfslam.frontend.pose_refine import refine_pose
+from ggfslam.frontend.types import TrackingState, TrackResult
+from ggfslam.geometry.se3 import invert
+
+
+@dataclass
+class FrameRecord:
+    """What the final trajectory needs of a frame: its reference keyframe and pose relative to it."""
+
+    index: int
+    timestamp: float
+    ref_kf: int
+    T_ref_cur: np.ndarray  # [4, 4]
+    state: TrackingState
+
+
+class OrbTracker:
+    """ORB frontend feeding a GTSAM backend (see module docstring)."""
+
+    name = "orb"
+
+    def __init__(self, camera: Camera, cfg: TrackingConfig, backend: Backend):
+        self.camera, self.cfg, self.backend = camera, cfg, backend
+        self.map = backend.map
+        self.extractor = OrbExtractor(camera, cfg)
+        self.level_scale = cfg.scale_factor ** np.arange(cfg.n_levels)  # [L]
+        self.state = TrackingState.NOT_INITIALIZED
+        self.records: list[FrameRecord] = []
+        self.velocity: np.ndarray | None = None  # inv(T_wc_prev) @ T_wc_last
+        self.last_T: np.ndarray | None = None
+        self.last_features: Features | None = None
+        self.last_lm: np.ndarray | None = None  # [N] landmark per keypoint of the last frame (-1 none)
+        self.ref_kf: int = -1
+        self.last_kf_frame = -1
+        self.next_kf_id = 0
+        self.relocalizer = None  # optional callable(features) -> list of keyframe ids (place recognition)
+        self.dense = DenseOdometry(camera, cfg) if cfg.dense_fallback else None
+        self.last_frame: Frame | None = None
+
+    # --- geometry helpers ---------------------------------------------------------------------------
+    def _sigma(self, octave: np.ndarray) -> np.ndarray:
+        return self.cfg.pixel_sigma * self.level_scale[octave]
+
+    def _refine(self, T: np.ndarray, F: Features, lm: np.ndarray, kp: np.ndarray):
+        """Refine pose T from matches (landmark ids lm [K], keypoint indices kp [K]); returns (T, inlier mask)."""
+        with self.map.lock:
+            X = self.map.positions[lm].copy()
+        res = refine_pose(T, X, F.uv[kp], F.depth[kp], self._sigma(F.octave[kp]), self.camera,
+                          self.cfg.virtual_baseline)
+        return res.T_wc, res.inliers
+
+    def _project(self, T_wc: np.ndarray, lm: np.ndarray):
+        """Pixels [K, 2], predicted levels [K] and in-view mask [K] of landmarks seen from T_wc."""
+        with self.map.lock:
+            X = self.map.positions[lm]
+            ref_d, ref_o = self.map.ref_distance[lm], self.map.ref_octave[lm]
+        T_cw = invert(T_wc)
+        p = X @ T_cw[:3, :3].T + T_cw[:3, 3]  # [K, 3]
+        z = p[:, 2]
+        zs = np.where(z > 1e-6, z, 1.0)
+        uv = np.stack([self.camera.fx * p[:, 0] / zs + self.camera.cx,
+                       self.camera.fy * p[:, 1] / zs + self.camera.cy], axis=1)
+        dist = np.linalg.norm(p, axis=1)
+        inside = (z > 0.05) & (uv[:, 0] >= 0) & (uv[:, 0] < self.camera.width) & (uv[:, 1] >= 0) & \
+                 (uv[:, 1] < self.camera.height) & (dist < 3.0 * ref_d * self.level_scale[-1])
+        # a point seen at level o from distance d appears at level o + log_s(d / dist) from distance dist
+        level = np.round(ref_o + np.log(np.maximum(ref_d, 1e-6) / np.maximum(dist, 1e-6)) / np.log(self.cfg.scale_factor))
+        return uv, np.clip(level, 0, self.cfg.n_levels - 1).astype(np.int64), inside
+
+    def _search(self, T: np.ndarray, F: Features, lm: np.ndarray, radius: float, taken: np.ndarray | None = None):
+        """Match landmarks lm to keypoints by projection from T; returns (landmark ids, keypoint indices, in view)."""
+        uv, level, inside = self._project(T, lm)
+        lm_in = lm[inside]
+        with self.map.lock:
+            desc = self.map.descriptors[lm_in]
+        pairs = match_projected(uv[inside], desc, level[inside], F.uv, F.descriptors, F.octave, radius,
+                                self.level_scale, self.cfg.match_max_distance, self.cfg.match_ratio, taken)
+        return lm_in[pairs[:, 0]], pairs[:, 1], lm_in
+
+    # --- tracking stages ----------------------------------------------------------------------------
+    def _track_motion_model(self, F: Features):
+        pred = self.last_T @ self.velocity
+        lm_all = self.last_lm[self.last_lm >= 0]
+        with self.map.lock:
+            lm_all = lm_all[self.map.alive[lm_all]]
+        lm, kp, _ = self._search(pred, F, lm_all, self.cfg.match_radius)
+        if len(lm) < 2 * self.cfg.min_matches:  # fast motion or a jerk: widen the window
+            lm, kp, _ = self._search(pred, F, lm_all, 2.5 * self.cfg.match_radius)
+        if len(lm) < self.cfg.min_matches:
+            return None
+        T, inl = self._refine(pred, F, lm, kp)
+        if inl.sum() < self.cfg.min_matches:
+            return None
+        return T, lm[inl], kp[inl]
+
+    def _pnp(self, F: Features, kf: KeyFrame):
+        """Pose of the frame from descriptor matches to the landmarks of keyframe ``kf`` (PnP RANSAC + refine)."""
+        has = np.nonzero(kf.landmark_ids >= 0)[0]
+        if len(has) < self.cfg.min_matches or len(F) < self.cfg.min_matches:
+            return None
+        pairs = match_ratio(F.descriptors, kf.features.descriptors[has], self.cfg.match_max_distance, 0.8)
+        if len(pairs) < self.cfg.min_matches:
+            return None
+        kp = pairs[:, 0]
+        lm = kf.landmark_ids[has[pairs[:, 1]]]
+        with self.map.lock:
+            ok_lm = self.map.alive[lm]
+            kp, lm = kp[ok_lm], lm[ok_lm]
+            X = self.map.positions[lm].copy()
+        if len(lm) < self.cfg.min_matches:
+            return None
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(X, F.uv[kp], self.camera.K, None, iterationsCount=200,
+                                                 reprojectionError=4.0, confidence=0.999, flags=cv2.SOLVEPNP_EPNP)
+        if not ok or inl is None or len(inl) < self.cfg.min_matches:
+            return None
+        T_cw = np.eye(4)
+        T_cw[:3, :3] = cv2.Rodrigues(rvec)[0]
+        T_cw[:3, 3] = tvec.ravel()
+        inl = inl.ravel()
+        T, good = self._refine(invert(T_cw), F, lm[inl], kp[inl])
+        if good.sum() < self.cfg.min_matches:
+            return None
+        return T, lm[inl][good], kp[inl][good]
+
+    def _track_local_map(self, F: Features, T: np.ndarray, lm: np.ndarray, kp: np.ndarray):
+        """Add matches from the local map (landmarks of keyframes covisible with the current matches), refine."""
+        with self.map.lock:
+            counts: Counter = Counter()
+            for l in lm:
+                counts.update(self.map.observations[l].keys())
+            local = [k for k, _ in counts.most_common(self.cfg.local_map_keyframes)]
+            if self.ref_kf >= 0 and self.ref_kf not in local:
+                local.append(self.ref_kf)
+            if local:
+                for k, _ in self.map.covisibility(local[0]).most_common(self.cfg.local_map_keyframes // 2):
+                    if k not in local:
+                        local.append(k)
+            cand = self.map.landmarks_of(local)
+        cand = np.setdiff1d(cand, lm, assume_unique=True)
+        taken = np.zeros(len(F), dtype=bool)
+        taken[kp] = True
+        lm2, kp2, seen = self._search(T, F, cand, self.cfg.match_radius, taken)
+        with self.map.lock:
+            self.map.n_visible[seen] += 1
+            self.map.n_visible[lm] += 1
+        lm_all, kp_all = np.concatenate([lm, lm2]), np.concatenate([kp, kp2])
+        T, inl = self._refine(T, F, lm_all, kp_all)
+        lm_all, kp_all = lm_all[inl], kp_all[inl]
+        with self.map.lock:
+            self.map.n_found[lm_all] += 1
+        if self.ref_kf >= 0 and local:
+            best = local[0] if counts else self.ref_kf
+            self.ref_kf = best  # the keyframe sharing most points with this frame
+        return T, lm_all, kp_all
+
+    def _relocalize(self, F: Features):
+        if self.relocalizer is not None:
+            candidates = self.relocalizer(F)
+        else:  # no place recognition: try the newest keyframes
+            candidates = sorted(self.map.keyframes)[::-1][: self.cfg.relocalization_candidates]
+        for k in candidates:
+            res = self._pnp(F, self.map.keyframes[k])
+            if res is not None:
+                self.ref_kf = k
+                return res
+        return None
+
+    # --- keyframes ------------------------------------------------------------------------------------
+    def _dense_step(self, frame: Frame) -> np.ndarray | None:
+        """Pose of the frame by dense RGB-D odometry from the previous frame, or None if it fails."""
+        if self.last_frame is None:
+            return None
+        ok, T_prev_cur, fitness = self.dense.relative(self.dense.rgbd(frame), self.dense.rgbd(self.last_frame),
+                                                      np.eye(4))
+        if not ok or fitness < 0.3:
+            return None
+        return self.last_T @ T_prev_cur
+
+    def _new_keyframe(self, frame: Frame, F: Features, T: np.ndarray, lm: np.ndarray, kp: np.ndarray,
+                      link: tuple[int, np.ndarray] | None = None) -> KeyFrame:
+        kf = KeyFrame(self.next_kf_id, frame.index, frame.timestamp, T.copy(), F, np.full(len(F), -1, np.int64))
+        if link is not None:
+            kf.meta["odometry_link"] = link  # (keyframe id, T_that_this)
+        self.next_kf_id += 1
+        self.map.add_keyframe(kf)
+        with self.map.lock:
+            for l, k in zip(lm, kp):
+                self.map.add_observation(int(l), kf, int(k))
+            fresh = np.nonzero((kf.landmark_ids < 0) & F.has_depth)[0]
+            if len(fresh):
+                Xw = F.points_cam[fresh] @ T[:3, :3].T + T[:3, 3]
+                self.map.add_landmarks(Xw, F.descriptors[fresh], kf, fresh)
+        self.ref_kf = kf.id
+        self.last_kf_frame = frame.index
+        self.backend.insert_keyframe(kf)
+        return kf
+
+    def _need_keyframe(self, frame: Frame, T: np.ndarray, n_tracked: int) -> bool:
+        if frame.index - self.last_kf_frame >= self.cfg.keyframe_max_frames:
+            return True
+        ref = self.map.keyframes[self.ref_kf]
+        with self.map.lock:
+            ref_lm = ref.landmark_ids[ref.landmark_ids >= 0]
+            ref_lm = ref_lm[self.map.alive[ref_lm]]
+            # only points other keyframes confirmed count (ORB-SLAM's nMinObs); fresh ones are not yet trusted
+            min_obs = 3 if len(self.map.keyframes) > 2 else 2
+            ref_tracked = sum(1 for l in ref_lm if len(self.map.observations[l]) >= min_obs)
+        if n_tracked < self.cfg.keyframe_tracked_ratio * ref_tracked:
+            return True
+        rel = invert(ref.T_wc) @ T
+        angle = np.degrees(np.arccos(np.clip((np.trace(rel[:3, :3]) - 1) / 2, -1, 1)))
+        return bool(np.linalg.norm(rel[:3, 3]) > self.cfg.keyframe_translation or angle > self.cfg.keyframe_rotation_deg)
+
+    # --- main entry -----------------------------------------------------------------------------------
+    def track(self, frame: Frame) -> TrackResult:
+        """Track one frame; returns its pose estimate now (the final one comes from ``trajectory()``)."""
+        F = self.extractor.extract(frame.rgb, frame.depth)
+        if self.state == TrackingState.NOT_INITIALIZED:
+            return self._initialize(frame, F)
+        res = None
+        dense_T = None
+        if self.state in (TrackingState.OK, TrackingState.RELOCALIZED):
+            res = self._track_motion_model(F)
+            if res is None:
+                res = self._pnp(F, self.map.keyframes[self.ref_kf])
+            if res is None and self.dense is not None:
+                dense_T = self._dense_step(frame)
+                if dense_T is not None:
+                    res = (dense_T, np.zeros(0, np.int64), np.zeros(0, np.int64))
+            state = TrackingState.OK
+        else:
+            res = self._relocalize(F)
+            state = TrackingState.RELOCALIZED
+        if res is not None:
+            T, lm, kp = self._track_local_map(F, *res) if len(res[1]) or dense_T is not None else res
+            if len(lm) < self.cfg.min_matches:
+                if dense_T is None:
+                    res = None
+                else:  # too little texture for features: keep the dense estimate and anchor a keyframe on it
+                    T, lm, kp = dense_T, np.zeros(0, np.int64), np.zeros(0, np.int64)
+        if res is None:
+            self.state = TrackingState.LOST
+            T_ref = self.map.keyframes[self.ref_kf].T_wc
+            # while lost, report the last pose (the frame is counted as lost in the metrics)
+            self.records.append(FrameRecord(frame.index, frame.timestamp, self.ref_kf,
+                                            invert(T_ref) @ self.last_T, TrackingState.LOST))
+            self.velocity = np.eye(4)
+            return TrackResult(self.last_T.copy(), False, 0.0, TrackingState.LOST)
+        self.state = state
+        self.velocity = invert(self.last_T) @ T if state == TrackingState.OK else np.eye(4)
+        weak = dense_T is not None and len(lm) < self.cfg.min_matches
+        is_kf = state == TrackingState.OK and (weak or self._need_keyframe(frame, T, len(lm)))
+        lm_per_kp = np.full(len(F), -1, np.int64)
+        lm_per_kp[kp] = lm
+        if is_kf:
+            # a keyframe placed by dense odometry shares too few points to be held by BA: tie it to its reference
+            link = (self.ref_kf, invert(self.map.keyframes[self.ref_kf].T_wc) @ T) if dense_T is not None else None
+            kf = self._new_keyframe(frame, F, T, lm, kp, link)
+            lm_per_kp = kf.landmark_ids.copy()
+        self.last_T, self.last_features, self.last_lm, self.last_frame = T, F, lm_per_kp, frame
+        T_ref = self.map.keyframes[self.ref_kf].T_wc
+        self.records.append(FrameRecord(frame.index, frame.timestamp, self.ref_kf, invert(T_ref) @ T, state))
+        return TrackResult(T.copy(), True, len(lm) / max(len(F), 1), state, is_kf, len(lm))
+
+    def _initialize(self, frame: Frame, F: Features) -> TrackResult:
+        """First frame with enough depth-backed keypoints becomes keyframe 0 at the world origin."""
+        if F.has_depth.sum() < 2 * self.cfg.min_matches:
+            self.records.append(FrameRecord(frame.index, frame.timestamp, -1, np.eye(4),
+                                            TrackingState.NOT_INITIALIZED))
+            return TrackResult(np.eye(4), False, 0.0, TrackingState.NOT_INITIALIZED)
+        T = np.eye(4)
+        kf = self._new_keyframe(frame, F, T, np.zeros(0, np.int64), np.zeros(0, np.int64))
+        self.state = TrackingState.OK
+        self.velocity = np.eye(4)
+        self.last_T, self.last_features, self.last_lm, self.last_frame = T, F, kf.landmark_ids.copy(), frame
+        self.records.append(FrameRecord(frame.index, frame.timestamp, kf.id, np.eye(4), TrackingState.OK))
+        return TrackResult(T, True, 1.0, TrackingState.OK, True, 0)
+
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Final timestamps [N], camera-to-world poses [N, 4, 4] of every frame, and lost flags [N].
+
+        Frames before initialization get the first keyframe's pose.
+        """
+        poses = self.map.poses()
+        stamps, out, lost = [], [], []
+        first = poses[min(poses)] if poses else np.eye(4)
+        for r in self.records:
+            T = first if r.ref_kf < 0 else poses[r.ref_kf] @ r.T_ref_cur
+            stamps.append(r.timestamp)
+            out.append(T)
+            lost.append(r.state in (TrackingState.LOST, TrackingState.NOT_INITIALIZED))
+        return np.array(stamps), np.stack(out), np.array(lost)
+
+    def finish(self) -> None:
+        """Let the backend process every queued keyframe."""
+        self.backend.finish()
+
+    def summary(self) -> dict:
+        """Backend figures (keyframes, landmarks, BA timing, loops) for metrics.json."""
+        return self.backend.summary()
+
+    def keyframe_trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+        """Timestamps [K] and camera-to-world poses [K, 4, 4] of the keyframes."""
+        kfs = sorted(self.map.keyframes.values(), key=lambda k: k.id)
+        return np.array([k.timestamp for k in kfs]), np.stack([k.T_wc for k in kfs])
