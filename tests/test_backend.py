@@ -1,0 +1,88 @@
+"""GTSAM backend: the RGB-D observation factor and local bundle adjustment on a hand-built map."""
+import gtsam
+import numpy as np
+from gtsam.utils.numerical_derivative import numericalDerivative21, numericalDerivative22
+from scipy.spatial.transform import Rotation
+
+from ggfslam.backend.graph import L, X, calibrations, observation_factor
+from ggfslam.backend.local_ba import local_bundle_adjustment
+from ggfslam.backend.slam_map import KeyFrame, SlamMap
+from ggfslam.config import BackendConfig, TrackingConfig
+from ggfslam.data.types import Camera
+from ggfslam.frontend.features import Features, backproject_points
+from ggfslam.geometry.se3 import invert, make_pose
+
+CAM = Camera(300.0, 300.0, 159.5, 119.5, 320, 240, 5000.0)
+TCFG = TrackingConfig()
+
+
+def test_rgbd_factor_zero_at_truth_and_jacobians_match_numerical():
+    mono, stereo = calibrations(CAM, TCFG.virtual_baseline)
+    T = make_pose(Rotation.from_euler("xyz", [5, -3, 10], degrees=True).as_matrix(), [0.2, -0.1, 0.3])
+    p_c = np.array([0.3, -0.2, 2.5])
+    p_w = T[:3, :3] @ p_c + T[:3, 3]
+    uv = np.array([CAM.fx * p_c[0] / p_c[2] + CAM.cx, CAM.fy * p_c[1] / p_c[2] + CAM.cy])
+    for depth in (p_c[2], 0.0):  # with depth: 3-D stereo residual; without: 2-D projection
+        f = observation_factor(0, 1, uv, depth, 1.0, mono, stereo, 2.8, 2.4)
+        v = gtsam.Values()
+        v.insert(X(0), gtsam.Pose3(T))
+        v.insert(L(1), gtsam.Point3(*p_w))
+        np.testing.assert_allclose(f.unwhitenedError(v), 0, atol=1e-9)
+        pose, point = gtsam.Pose3(T).retract(np.full(6, 0.01)), gtsam.Point3(*(p_w + 0.02))
+        if depth > 0:
+            cam = lambda P, Q: gtsam.StereoCamera(P, stereo).project(Q).vector()  # noqa: E731
+        else:
+            cam = lambda P, Q: gtsam.PinholeCameraCal3_S2(P, mono).project(Q)  # noqa: E731
+        H_pose = numericalDerivative21(cam, pose, point)
+        H_point = numericalDerivative22(cam, pose, point)
+        v2 = gtsam.Values()
+        v2.insert(X(0), pose)
+        v2.insert(L(1), point)
+        lin = f.linearize(v2)
+        A = lin.jacobian()[0]
+        # the linear factor is whitened by the noise model (unit sigma) and the robust kernel's weight
+        w = np.sqrt(f.noiseModel().robust().weight(np.linalg.norm(f.unwhitenedError(v2))))
+        np.testing.assert_allclose(A[:, :6], w * H_pose, rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(A[:, 6:9], w * H_point, rtol=1e-5, atol=1e-6)
+
+
+def _build_map(rng, n_kf=4, n_pts=400):
+    """Keyframes moving along x looking at a wall of points; exact observations from the true poses."""
+    smap = SlamMap()
+    truth = [make_pose(Rotation.from_euler("y", 2 * k, degrees=True).as_matrix(), [0.1 * k, 0.0, 0.0])
+             for k in range(n_kf)]
+    pts = np.column_stack([rng.uniform(-1.5, 1.8, n_pts), rng.uniform(-1, 1, n_pts), rng.uniform(2.5, 4.0, n_pts)])
+    desc = rng.integers(0, 256, (n_pts, 32), dtype=np.uint8)
+    kfs = []
+    for k, T in enumerate(truth):
+        p_c = pts @ invert(T)[:3, :3].T + invert(T)[:3, 3]
+        uv = np.column_stack([CAM.fx * p_c[:, 0] / p_c[:, 2] + CAM.cx, CAM.fy * p_c[:, 1] / p_c[:, 2] + CAM.cy])
+        feats = Features(uv, np.zeros(n_pts, np.int64), desc, p_c[:, 2].copy(), backproject_points(uv, p_c[:, 2], CAM))
+        kf = KeyFrame(k, 10 * k, float(k), T.copy(), feats, np.full(n_pts, -1, np.int64))
+        smap.add_keyframe(kf)
+        kfs.append(kf)
+    smap.add_landmarks(pts.copy(), desc, kfs[0], np.arange(n_pts))
+    for kf in kfs[1:]:
+        for i in range(n_pts):
+            smap.add_observation(i, kf, i)
+    return smap, truth, pts
+
+
+def test_local_ba_recovers_perturbed_poses_and_points_and_drops_outliers():
+    rng = np.random.default_rng(0)
+    smap, truth, pts = _build_map(rng)
+    for k in (1, 2, 3):  # keyframe 0 is the gauge
+        smap.keyframes[k].T_wc = truth[k] @ make_pose(Rotation.from_rotvec(rng.normal(scale=0.01, size=3)).as_matrix(),
+                                                      rng.normal(scale=0.02, size=3))
+    smap.positions[: len(pts)] += rng.normal(scale=0.01, size=pts.shape)
+    bad = 7
+    smap.keyframes[3].features.uv[bad] += 30.0  # one gross mismatch
+    stats = local_bundle_adjustment(smap, 3, CAM, TCFG, BackendConfig(window=8, iterations=20))
+    # what is left is essentially the Huber-capped cost of the one mismatch (~ 2.8 * 42 px)
+    assert stats is not None and stats.error_after < 0.02 * stats.error_before
+    for k in (1, 2, 3):
+        d = invert(truth[k]) @ smap.keyframes[k].T_wc
+        assert np.linalg.norm(d[:3, 3]) < 1e-3 and Rotation.from_matrix(d[:3, :3]).magnitude() < 1e-3
+    assert np.abs(smap.positions[: len(pts)] - pts).max() < 5e-3
+    assert 3 not in smap.observations[bad] and smap.keyframes[3].landmark_ids[bad] == -1
+    assert stats.outliers == 1

@@ -1,0 +1,115 @@
+"""Feature frontend: ORB spread, matching, robust motion-only refinement, tracking on synthetic sequences."""
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from ggfslam.backend.backend import Backend
+from ggfslam.config import BackendConfig, TrackingConfig
+from ggfslam.data.synthetic import SyntheticSequence
+from ggfslam.data.types import Camera, Frame
+from ggfslam.eval.trajectory import trajectory_metrics
+from ggfslam.frontend.features import OrbExtractor
+from ggfslam.frontend.matching import hamming_pairs, match_projected, match_ratio
+from ggfslam.frontend.pose_refine import project_stereo, refine_pose
+from ggfslam.frontend.tracker import OrbTracker
+from ggfslam.frontend.types import TrackingState
+from ggfslam.geometry.se3 import invert, make_pose
+
+CAM = Camera(300.0, 300.0, 159.5, 119.5, 320, 240, 5000.0)
+
+
+def test_hamming_and_ratio_matching():
+    rng = np.random.default_rng(0)
+    a = rng.integers(0, 256, (300, 32), dtype=np.uint8)
+    b = a[::-1].copy()
+    b[:, :2] ^= 0b101  # 4 flipped bits per descriptor
+    np.testing.assert_array_equal(hamming_pairs(a, a[::-1][::-1]), 0)
+    assert np.all(hamming_pairs(a[::-1], b) == 4)
+    m = match_ratio(a, b, max_distance=50, ratio=0.8)
+    assert len(m) == 300 and np.all(m[:, 1] == 299 - m[:, 0])
+
+
+def test_projection_matching_respects_radius_and_uniqueness():
+    rng = np.random.default_rng(1)
+    desc = rng.integers(0, 256, (50, 32), dtype=np.uint8)
+    kp_uv = rng.uniform(0, 300, (50, 2))
+    octave = np.zeros(50, np.int64)
+    scale = 1.2 ** np.arange(8)
+    proj = kp_uv + rng.normal(scale=2.0, size=(50, 2))
+    pairs = match_projected(proj, desc, octave, kp_uv, desc, octave, 8.0, scale, 50, 0.9)
+    assert len(pairs) >= 45 and np.all(pairs[:, 0] == pairs[:, 1])
+    assert len(np.unique(pairs[:, 1])) == len(pairs)
+    far = match_projected(proj + 100, desc, octave, kp_uv, desc, octave, 8.0, scale, 50, 0.9)
+    assert np.all(far[:, 0] != far[:, 1]) if len(far) else True
+
+
+def test_refine_pose_recovers_the_pose_and_flags_outliers():
+    rng = np.random.default_rng(2)
+    T_true = make_pose(Rotation.from_euler("xyz", [3, -5, 8], degrees=True).as_matrix(), [0.1, -0.05, 0.2])
+    pts_c = np.column_stack([rng.uniform(-1.5, 1.5, 300), rng.uniform(-1, 1, 300), rng.uniform(1.0, 4.0, 300)])
+    X_w = pts_c @ T_true[:3, :3].T + T_true[:3, 3]
+    bf = CAM.fx * 0.08
+    meas, _ = project_stereo(invert(T_true), X_w, CAM, bf)
+    uv = meas[:, :2] + rng.normal(scale=0.5, size=(300, 2))
+    depth = pts_c[:, 2].copy()
+    depth[:50] = 0.0  # some keypoints without depth: 2-D residuals only
+    outliers = np.arange(250, 300)
+    uv[outliers] += rng.uniform(20, 40, (50, 2))  # gross mismatches
+    init = T_true @ make_pose(Rotation.from_euler("z", 3, degrees=True).as_matrix(), [0.05, 0.03, -0.04])
+    res = refine_pose(init, X_w, uv, depth, np.full(300, 1.0), CAM, 0.08)
+    err = invert(T_true) @ res.T_wc
+    assert np.linalg.norm(err[:3, 3]) < 0.005
+    assert np.degrees(Rotation.from_matrix(err[:3, :3]).magnitude()) < 0.1
+    assert not res.inliers[outliers].any() and res.inliers[:250].mean() > 0.9
+
+
+def test_orb_keypoints_cover_the_image():
+    seq = SyntheticSequence(n_frames=2, width=320, height=240, seed=0)
+    f = seq[0]
+    feats = OrbExtractor(seq.camera, TrackingConfig(n_features=800)).extract(f.rgb, f.depth)
+    assert len(feats) == 800 and feats.has_depth.mean() > 0.8
+    hist = np.histogram2d(feats.uv[:, 0], feats.uv[:, 1], bins=[8, 6], range=[[0, 320], [0, 240]])[0]
+    assert (hist > 0).mean() > 0.9
+    valid = feats.has_depth
+    # back-projected points reproject onto their keypoints
+    p = feats.points_cam[valid]
+    u = seq.camera.fx * p[:, 0] / p[:, 2] + seq.camera.cx
+    np.testing.assert_allclose(u, feats.uv[valid, 0], atol=1e-6)
+
+
+def _track(frames, camera, tcfg=None, bcfg=None):
+    tcfg = tcfg or TrackingConfig(n_features=1000)
+    backend = Backend(camera, tcfg, bcfg or BackendConfig())
+    tracker = OrbTracker(camera, tcfg, backend)
+    results = [tracker.track(f) for f in frames]
+    tracker.finish()
+    return tracker, results
+
+
+@pytest.mark.parametrize("noise", [False, True], ids=["clean", "kinect-noise"])
+def test_tracking_synthetic_sequence_under_1cm(noise):
+    seq = SyntheticSequence(n_frames=60, width=320, height=240, trajectory="orbit", seed=3, depth_noise=noise)
+    tracker, results = _track(list(seq), seq.camera)
+    assert all(r.ok for r in results)
+    stamps, poses, lost = tracker.trajectory()
+    m = trajectory_metrics(stamps, poses, seq.timestamps, seq.poses)
+    assert m["ate_pairs"] == 60 and m["ate_rmse_cm"] < 1.0, m
+    assert tracker.backend.stats.ba_runs >= 1 and len(tracker.map.keyframes) >= 2
+
+
+def test_blank_frames_are_lost_then_relocalized():
+    seq = SyntheticSequence(n_frames=50, width=320, height=240, trajectory="orbit", seed=4)
+    frames = list(seq)
+    blank = range(20, 26)
+    for i in blank:  # a covered lens: black image, no depth
+        frames[i] = Frame(i, frames[i].timestamp, np.zeros_like(frames[i].rgb), np.zeros_like(frames[i].depth),
+                          frames[i].T_wc)
+    tracker, results = _track(frames, seq.camera)
+    states = [r.state for r in results]
+    assert all(states[i] == TrackingState.LOST for i in blank)
+    assert states[26] == TrackingState.RELOCALIZED
+    assert all(s == TrackingState.OK for s in states[27:])
+    stamps, poses, lost = tracker.trajectory()
+    keep = ~lost
+    m = trajectory_metrics(stamps[keep], poses[keep], seq.timestamps, seq.poses)
+    assert m["ate_rmse_cm"] < 1.0, m
