@@ -78,8 +78,7 @@ def test_local_ba_recovers_perturbed_poses_and_points_and_drops_outliers():
     bad = 7
     smap.keyframes[3].features.uv[bad] += 30.0  # one gross mismatch
     stats = local_bundle_adjustment(smap, 3, CAM, TCFG, BackendConfig(window=8, iterations=20))
-    # what is left is essentially the Huber-capped cost of the one mismatch (~ 2.8 * 42 px)
-    assert stats is not None and stats.error_after < 0.02 * stats.error_before
+    assert stats is not None and stats.error_after < 1e-3 * stats.error_before  # after: without the outlier
     for k in (1, 2, 3):
         d = invert(truth[k]) @ smap.keyframes[k].T_wc
         assert np.linalg.norm(d[:3, 3]) < 1e-3 and Rotation.from_matrix(d[:3, :3]).magnitude() < 1e-3

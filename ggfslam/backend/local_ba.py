@@ -16,6 +16,16 @@ from ggfslam.data.types import Camera
 _FIXED_NOISE = gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)
 
 
+def _optimize(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, iterations: int) -> gtsam.Values | None:
+    """Levenberg-Marquardt; None when the system is indeterminate."""
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(iterations)
+    try:
+        return gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+    except RuntimeError:
+        return None
+
+
 @dataclass
 class BAStats:
     """What one bundle adjustment did."""
@@ -81,22 +91,30 @@ def local_bundle_adjustment(smap: SlamMap, kf_id: int, camera: Camera, tcfg: Tra
         graph.add(factor)
         factors.append(factor)
         sigmas.append(sigma)
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(bcfg.iterations)
     err0 = graph.error(values)
-    try:
-        result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
-    except RuntimeError:  # an indeterminate system (a landmark seen once without depth): keep the old estimate
+    result = _optimize(graph, values, bcfg.iterations)
+    if result is None:  # an indeterminate system (a landmark seen once without depth): keep the old estimate
         return None
-    err1 = graph.error(result)
     # outliers: whitened error above the chi-square bound, or behind the camera
-    outliers = []
-    for (k, lm, kp), sigma, factor in zip(obs, sigmas, factors):
+    outliers, keep = [], np.ones(len(obs), dtype=bool)
+    for i, ((k, lm, kp), sigma, factor) in enumerate(zip(obs, sigmas, factors)):
         chi2 = whitened_chi2(factor, result, sigma)
         bound = bcfg.outlier_chi2_stereo if is_stereo_factor(factor) else bcfg.outlier_chi2_mono
         p_c = result.atPose3(X(k)).transformTo(result.atPoint3(L(lm)))
         if chi2 > bound or p_c[2] <= 0:
             outliers.append((lm, k))
+            keep[i] = False
+    if outliers:
+        # optimize again without them: even Huber-weighted, a gross mismatch drags its landmark off (ORB-SLAM does the same)
+        clean = gtsam.NonlinearFactorGraph()
+        for i in range(graph.size() - len(factors)):
+            clean.add(graph.at(i))
+        for factor, ok in zip(factors, keep):
+            if ok:
+                clean.add(factor)
+        graph = clean
+        result = _optimize(graph, result, max(bcfg.iterations // 2, 3)) or result
+    err1 = graph.error(result)
     with smap.lock:
         for k in window:
             if k not in fixed and k in smap.keyframes:
