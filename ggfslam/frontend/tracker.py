@@ -241,26 +241,32 @@ class OrbTracker:
         if self.state == TrackingState.NOT_INITIALIZED:
             return self._initialize(frame, F)
         res = None
-        dense_T = None
+        dense_T, res = None, None
+        empty = np.zeros(0, np.int64)
         if self.state in (TrackingState.OK, TrackingState.RELOCALIZED):
-            res = self._track_motion_model(F)
-            if res is None:
-                res = self._pnp(F, self.map.keyframes[self.ref_kf])
-            if res is None and self.dense is not None:
-                dense_T = self._dense_step(frame)
-                if dense_T is not None:
-                    res = (dense_T, np.zeros(0, np.int64), np.zeros(0, np.int64))
+            guess = self._track_motion_model(F)
+            if guess is None:
+                guess = self._pnp(F, self.map.keyframes[self.ref_kf])
+            if self.dense is not None and (guess is None or len(guess[1]) < self.cfg.dense_guess_below):
+                dense_T = self._dense_step(frame)  # few feature matches: a dense estimate may place the frame better
+            tries = [self._track_local_map(F, *guess)] if guess is not None else []
+            if dense_T is not None:
+                tries.append(self._track_local_map(F, dense_T, empty, empty))
+            if tries:
+                res = max(tries, key=lambda t: len(t[1]))
             state = TrackingState.OK
         else:
-            res = self._relocalize(F)
+            found = self._relocalize(F)
+            res = None if found is None else self._track_local_map(F, *found)
             state = TrackingState.RELOCALIZED
         if res is not None:
-            T, lm, kp = self._track_local_map(F, *res) if len(res[1]) or dense_T is not None else res
+            T, lm, kp = res
             if len(lm) < self.cfg.min_matches:
-                if dense_T is None:
-                    res = None
-                else:  # too little texture for features: keep the dense estimate and anchor a keyframe on it
-                    T, lm, kp = dense_T, np.zeros(0, np.int64), np.zeros(0, np.int64)
+                res = None
+        if res is None and dense_T is not None:
+            # too little texture for features: keep the dense estimate and anchor a keyframe on it
+            T, lm, kp = dense_T, empty, empty
+            res = (T, lm, kp)
         if res is None:
             self.state = TrackingState.LOST
             T_ref = self.map.keyframes[self.ref_kf].T_wc
@@ -271,13 +277,13 @@ class OrbTracker:
             return TrackResult(self.last_T.copy(), False, 0.0, TrackingState.LOST)
         self.state = state
         self.velocity = invert(self.last_T) @ T if state == TrackingState.OK else np.eye(4)
-        weak = dense_T is not None and len(lm) < self.cfg.min_matches
+        weak = len(lm) < self.cfg.min_matches  # only a dense estimate placed this frame
         is_kf = state == TrackingState.OK and (weak or self._need_keyframe(frame, T, len(lm)))
         lm_per_kp = np.full(len(F), -1, np.int64)
         lm_per_kp[kp] = lm
         if is_kf:
             # a keyframe placed by dense odometry shares too few points to be held by BA: tie it to its reference
-            link = (self.ref_kf, invert(self.map.keyframes[self.ref_kf].T_wc) @ T) if dense_T is not None else None
+            link = (self.ref_kf, invert(self.map.keyframes[self.ref_kf].T_wc) @ T) if weak else None
             kf = self._new_keyframe(frame, F, T, lm, kp, link)
             lm_per_kp = kf.landmark_ids.copy()
         self.last_T, self.last_features, self.last_lm, self.last_frame = T, F, lm_per_kp, frame
