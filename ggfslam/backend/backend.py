@@ -40,7 +40,11 @@ class Backend:
         self.camera, self.tcfg, self.bcfg = camera, tcfg, bcfg
         self.map = SlamMap()
         self.stats = BackendStats()
-        self.loop_hook = None  # callable(kf) set by loop closure integration
+        self.loop_detector = None
+        if bcfg.loop_closure:
+            from ggfslam.backend.loop_closure import LoopDetector
+
+            self.loop_detector = LoopDetector(camera)
         self._queue: queue.Queue | None = None
         self._thread: threading.Thread | None = None
         self._error: BaseException | None = None
@@ -81,8 +85,33 @@ class Backend:
             self.stats.ba_runs += 1
             self.stats.ba_seconds.append(stats.seconds)
             self.stats.outliers_removed += stats.outliers
-        if self.loop_hook is not None and self.bcfg.loop_closure:
-            self.loop_hook(self.map.keyframes[kf_id])
+        if self.loop_detector is not None:
+            self._detect_loop(self.map.keyframes[kf_id])
+
+    def _detect_loop(self, kf: KeyFrame) -> None:
+        from ggfslam.backend.loop_correction import close_loop
+
+        with self.map.lock:
+            covisible = set(self.map.covisibility(kf.id))
+            T = kf.T_wc.copy()
+        f = kf.features
+        loop = self.loop_detector.add_keyframe(kf.id, f.uv, f.descriptors, f.points_cam, T, covisible)
+        if loop is None:
+            return
+        t0 = time.perf_counter()
+        new = close_loop(self.map, loop)
+        self.loop_detector.update_poses(new)
+        self.stats.loops.append({"query": loop.query_id, "match": loop.match_id, "inliers": loop.inliers,
+                                 "seconds": time.perf_counter() - t0})
+        log.info("loop closed: keyframe %d -> %d (%d inliers)", loop.query_id, loop.match_id, loop.inliers)
+
+    def place_candidates(self, descriptors, top_k: int) -> list[int]:
+        """Keyframes that look most like a set of ORB descriptors (for relocalization), best first."""
+        if self.loop_detector is None:
+            return []
+        bow = self.loop_detector.vocabulary.transform(descriptors)
+        with self.map.lock:
+            return [k for k, _ in self.loop_detector.database.query(bow, top_k=top_k) if k in self.map.keyframes]
 
     def _cull(self, kf_id: int) -> None:
         """Drop landmarks that later keyframes do not confirm (ORB-SLAM's recent map point culling)."""

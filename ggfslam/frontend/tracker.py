@@ -56,7 +56,6 @@ class OrbTracker:
         self.ref_kf: int = -1
         self.last_kf_frame = -1
         self.next_kf_id = 0
-        self.relocalizer = None  # optional callable(features) -> list of keyframe ids (place recognition)
         self.dense = DenseOdometry(camera, cfg) if cfg.dense_fallback else None
         self.last_frame: Frame | None = None
 
@@ -177,10 +176,12 @@ class OrbTracker:
         return T, lm_all, kp_all
 
     def _relocalize(self, F: Features):
-        if self.relocalizer is not None:
-            candidates = self.relocalizer(F)
-        else:  # no place recognition: try the newest keyframes
-            candidates = sorted(self.map.keyframes)[::-1][: self.cfg.relocalization_candidates]
+        n = self.cfg.relocalization_candidates
+        candidates = self.backend.place_candidates(F.descriptors, n) if len(F) else []
+        # the newest keyframes too: right after a blackout the camera is usually still near them
+        for k in sorted(self.map.keyframes)[::-1][:n]:
+            if k not in candidates:
+                candidates.append(k)
         for k in candidates:
             res = self._pnp(F, self.map.keyframes[k])
             if res is not None:
@@ -240,6 +241,8 @@ class OrbTracker:
         F = self.extractor.extract(frame.rgb, frame.depth)
         if self.state == TrackingState.NOT_INITIALIZED:
             return self._initialize(frame, F)
+        # bundle adjustment or a loop closure may have moved the reference keyframe since the last frame
+        self.last_T = self.map.keyframes[self.records[-1].ref_kf].T_wc @ self.records[-1].T_ref_cur
         res = None
         dense_T, res = None, None
         empty = np.zeros(0, np.int64)

@@ -1,0 +1,57 @@
+"""Close a detected loop on the map: pose-graph optimization over all keyframes, landmark correction, fusion."""
+from __future__ import annotations
+
+import numpy as np
+
+from ggfslam.backend.loop_closure import LoopResult
+from ggfslam.backend.pose_graph import PoseEdge, correct_points, optimize_pose_graph
+from ggfslam.backend.slam_map import SlamMap
+from ggfslam.geometry.se3 import invert
+
+# a loop's own covariance can be 1-2 mm: floor it so a slightly optimistic loop cannot tear the graph
+_LOOP_FLOOR_ROT, _LOOP_FLOOR_TRANS = np.radians(0.5), 0.01
+_ODOM_ROT, _ODOM_TRANS = 0.01, 0.02  # consecutive-keyframe edges (rad, m)
+_COVIS_MIN_SHARED = 100  # covisibility edges only between keyframes sharing this many landmarks
+
+
+def loop_edges(smap: SlamMap, loop: LoopResult) -> list[PoseEdge]:
+    """Consecutive-keyframe and strong covisibility edges from the current estimates, plus the loop edge."""
+    poses = smap.poses()
+    ids = sorted(poses)
+    edges = [PoseEdge(a, b, invert(poses[a]) @ poses[b], _ODOM_ROT, _ODOM_TRANS, kind="odometry")
+             for a, b in zip(ids[:-1], ids[1:])]
+    consecutive = set(zip(ids[:-1], ids[1:]))
+    for a in ids:
+        for b, shared in smap.covisibility(a).items():
+            if a < b and shared >= _COVIS_MIN_SHARED and (a, b) not in consecutive and \
+                    {a, b} != {loop.match_id, loop.query_id}:
+                edges.append(PoseEdge(a, b, invert(poses[a]) @ poses[b], _ODOM_ROT, _ODOM_TRANS,
+                                      kind="covisibility"))
+    cov = np.diag([_LOOP_FLOOR_ROT ** 2] * 3 + [_LOOP_FLOOR_TRANS ** 2] * 3)
+    if loop.covariance is not None:
+        cov = cov + loop.covariance
+    edges.append(PoseEdge(loop.match_id, loop.query_id, loop.T_match_query, kind="loop", covariance=cov))
+    return edges
+
+
+def close_loop(smap: SlamMap, loop: LoopResult) -> dict[int, np.ndarray]:
+    """Correct every keyframe and landmark for a verified loop and fuse the points seen on both sides.
+
+    The matched (older) keyframe is held fixed: its pose predates the drift the loop removes.
+    Returns the new keyframe poses.
+    """
+    with smap.lock:
+        old = smap.poses()
+        new = optimize_pose_graph(old, loop_edges(smap, loop), fixed_ids={loop.match_id})
+        for k, T in new.items():
+            smap.keyframes[k].T_wc = T
+        ids = smap.alive_ids()
+        smap.positions[ids] = correct_points(smap.positions[ids], smap.created_by[ids], old, new)
+        q, m = smap.keyframes[loop.query_id], smap.keyframes[loop.match_id]
+        for iq, im in loop.inlier_pairs:
+            lq, lm = int(q.landmark_ids[iq]), int(m.landmark_ids[im])
+            if lq >= 0 and lm >= 0:
+                smap.merge_landmarks(keep=lm, drop=lq)
+            elif lm >= 0 and smap.alive[lm]:
+                smap.add_observation(lm, q, int(iq))
+    return new
