@@ -61,10 +61,11 @@ def run(
     no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bar."),
 ):
     """Run SLAM on a configured sequence and write a run directory."""
-    from ggfslam import slam
     from ggfslam.config import load_config
 
-    cfg = load_config(config, set_)
+    cfg = load_config(config, set_)  # before the heavy imports: a bad config fails in a blink
+    from ggfslam import slam
+
     metrics = slam.run(cfg, out, overwrite=overwrite, progress=not no_progress)
     _print_result(metrics, out, f"{cfg.name}: {metrics['sequence']['dataset']}")
 
@@ -95,6 +96,9 @@ def demo(
 @user_errors
 def eval_(run_dir: Path = typer.Argument(..., help="A run directory written by `ggfslam run`.")):
     """Recompute a run's metrics from its files and print the table."""
+    from ggfslam.rundir import require_run_dir
+
+    require_run_dir(run_dir)
     from ggfslam import slam
 
     metrics = slam.evaluate(run_dir)

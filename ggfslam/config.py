@@ -224,8 +224,6 @@ class RuntimeConfig(_Section):
 
     seed: int = 0
     """Seed for every random choice (numpy, torch)."""
-    deterministic: bool = True
-    """Sequential, repeatable execution (same output every run)."""
     num_threads: int = 0
     """Threads for torch/numba; 0 = all cores."""
     progress: bool = True

@@ -21,7 +21,7 @@ from ggfslam.errors import RunDirError
 from ggfslam.eval.perf import StageTimer, peak_rss_mb
 from ggfslam.eval.trajectory import trajectory_metrics
 from ggfslam.rundir import (
-    CONFIG_FILE, GROUNDTRUTH_FILE, KEYFRAMES_FILE, LOG_FILE, METRICS_FILE, RUN_INFO_FILE, TRACKING_LOG_FILE, TRAJECTORY_FILE,
+    CONFIG_FILE, GRAPH_FILE, GROUNDTRUTH_FILE, KEYFRAMES_FILE, LOG_FILE, METRICS_FILE, RUN_INFO_FILE, TRACKING_LOG_FILE, TRAJECTORY_FILE,
     prepare_run_dir, read_json, require_run_dir, write_json,
 )
 
@@ -36,8 +36,6 @@ def setup_runtime(config: Config) -> None:
     torch.manual_seed(seed)
     if config.runtime.num_threads > 0:
         torch.set_num_threads(config.runtime.num_threads)
-    if config.runtime.deterministic:
-        torch.use_deterministic_algorithms(True, warn_only=True)
 
 
 def make_tracker(config: Config, dataset: RGBDDataset):
@@ -114,6 +112,11 @@ def run(config: Config, out_dir: str | Path, overwrite: bool = False, progress: 
         if kf_traj is not None:
             write_tum_trajectory(run_dir / KEYFRAMES_FILE, *kf_traj,
                                  header=f"ggfslam {__version__} {tracker.name}: camera-to-world, keyframes")
+        if getattr(tracker, "backend", None) is not None:  # the factor graph (the odometry baseline has none)
+            from ggfslam.backend.export import write_graph_json
+
+            write_graph_json(run_dir / GRAPH_FILE, tracker.backend.map, dataset.camera, config.tracking,
+                             config.backend)
         (run_dir / TRACKING_LOG_FILE).write_text("\n".join(lines) + "\n")
         gt = dataset.gt_poses
         if gt is not None:

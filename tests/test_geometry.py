@@ -1,5 +1,4 @@
 """SE(3) conventions, pose interpolation and depth geometry against hand-computed values."""
-import gtsam
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation

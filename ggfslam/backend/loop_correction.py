@@ -27,11 +27,16 @@ def loop_edges(smap: SlamMap, loop: LoopResult) -> list[PoseEdge]:
                     {a, b} != {loop.match_id, loop.query_id}:
                 edges.append(PoseEdge(a, b, invert(poses[a]) @ poses[b], _ODOM_ROT, _ODOM_TRANS,
                                       kind="covisibility"))
-    cov = np.diag([_LOOP_FLOOR_ROT ** 2] * 3 + [_LOOP_FLOOR_TRANS ** 2] * 3)
-    if loop.covariance is not None:
-        cov = cov + loop.covariance
-    edges.append(PoseEdge(loop.match_id, loop.query_id, loop.T_match_query, kind="loop", covariance=cov))
+    # earlier loops stay in the graph, or a new loop correction could undo them
+    for m, q, T_mq, cov in smap.loops + [(loop.match_id, loop.query_id, loop.T_match_query, loop_covariance(loop))]:
+        edges.append(PoseEdge(m, q, T_mq, kind="loop", covariance=cov))
     return edges
+
+
+def loop_covariance(loop: LoopResult) -> np.ndarray:
+    """Covariance [6, 6] of a loop edge: the verification's own estimate plus a floor."""
+    cov = np.diag([_LOOP_FLOOR_ROT ** 2] * 3 + [_LOOP_FLOOR_TRANS ** 2] * 3)
+    return cov if loop.covariance is None else cov + loop.covariance
 
 
 def close_loop(smap: SlamMap, loop: LoopResult) -> dict[int, np.ndarray]:
@@ -45,6 +50,7 @@ def close_loop(smap: SlamMap, loop: LoopResult) -> dict[int, np.ndarray]:
         new = optimize_pose_graph(old, loop_edges(smap, loop), fixed_ids={loop.match_id})
         for k, T in new.items():
             smap.keyframes[k].T_wc = T
+        smap.loops.append((loop.match_id, loop.query_id, loop.T_match_query.copy(), loop_covariance(loop)))
         ids = smap.alive_ids()
         smap.positions[ids] = correct_points(smap.positions[ids], smap.created_by[ids], old, new)
         q, m = smap.keyframes[loop.query_id], smap.keyframes[loop.match_id]

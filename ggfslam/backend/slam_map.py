@@ -39,6 +39,8 @@ class SlamMap:
         self.ref_octave = np.zeros(capacity, dtype=np.int64)  # [C] pyramid level when created
         self.observations: list[dict[int, int]] = [{} for _ in range(capacity)]  # kf id -> keypoint index
         self.size = 0
+        # closed loops: (match kf, query kf, T_match_query [4, 4], covariance [6, 6] of the loop edge)
+        self.loops: list[tuple[int, int, np.ndarray, np.ndarray]] = []
 
     # --- landmarks --------------------------------------------------------------------------------
     def _grow(self) -> None:

@@ -8,6 +8,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ggfslam.data.imageio import read_depth, read_rgb
 from ggfslam.data.types import Camera, Frame
 from ggfslam.errors import DatasetError
 
@@ -137,3 +138,35 @@ class RGBDDataset(ABC):
         """One line naming the sequence, its size and resolution."""
         cam = self.camera
         return f"{type(self).__name__}({self.root}, {len(self)} frames, {cam.width}x{cam.height})"
+
+
+class ImageFileDataset(RGBDDataset):
+    """A reader whose frames are colour/depth file pairs: subclasses fill the lists in ``__init__``.
+
+    They set ``rgb_files`` and ``depth_files`` (one path per raw frame), ``_stamps`` [N], ``_cam`` and, when
+    there is ground truth, ``_gt`` [N, 4, 4].
+    """
+
+    rgb_files: list[Path]
+    depth_files: list[Path]
+    _stamps: np.ndarray
+    _cam: Camera
+    _gt: np.ndarray | None = None
+
+    def _raw_len(self) -> int:
+        return len(self.rgb_files)
+
+    def _raw_camera(self) -> Camera:
+        return self._cam
+
+    def _raw_timestamps(self) -> np.ndarray:
+        return self._stamps
+
+    def _raw_gt(self) -> np.ndarray | None:
+        return self._gt
+
+    def _load(self, raw_index: int) -> tuple[np.ndarray, np.ndarray, str]:
+        rgb_path = self.rgb_files[raw_index]
+        rgb = read_rgb(rgb_path)  # [H, W, 3]
+        depth = read_depth(self.depth_files[raw_index], self._cam.depth_scale)  # [H, W] metres
+        return rgb, depth, str(rgb_path)

@@ -5,8 +5,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ggfslam.data.base import RGBDDataset
-from ggfslam.data.imageio import read_depth, read_rgb
+from ggfslam.data.base import ImageFileDataset
 from ggfslam.data.paths import list_files, natural_key, require_dir
 from ggfslam.data.camera_file import CAMERA_FILE, read_camera_yaml
 from ggfslam.data.types import Camera
@@ -24,7 +23,7 @@ def _by_stem(folder: Path, suffixes: tuple[str, ...]) -> dict[str, Path]:
     return out
 
 
-class ImageFolderDataset(RGBDDataset):
+class ImageFolderDataset(ImageFileDataset):
     """Frames ``<rgb_dir>/<name>.<png|jpg|...>`` with depth ``<depth_dir>/<name>.png``, in natural name order.
 
     Intrinsics and depth scale come from ``camera`` (set its ``depth_scale``: raw units per metre), else from
@@ -69,18 +68,3 @@ class ImageFolderDataset(RGBDDataset):
         self.rgb_files = [colour[s] for s in stems]
         self.depth_files = [depth[s] for s in stems]
         self._stamps = np.arange(len(stems)) / float(fps)  # [N]
-
-    def _raw_len(self) -> int:
-        return len(self.rgb_files)
-
-    def _raw_camera(self) -> Camera:
-        return self._cam
-
-    def _raw_timestamps(self) -> np.ndarray:
-        return self._stamps
-
-    def _load(self, raw_index: int) -> tuple[np.ndarray, np.ndarray, str]:
-        rgb_path = self.rgb_files[raw_index]
-        rgb = read_rgb(rgb_path)  # [H, W, 3]
-        depth = read_depth(self.depth_files[raw_index], self._cam.depth_scale)  # [H, W] metres
-        return rgb, depth, str(rgb_path)

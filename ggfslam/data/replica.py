@@ -8,8 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ggfslam.data.base import RGBDDataset
-from ggfslam.data.imageio import read_depth, read_rgb
+from ggfslam.data.base import ImageFileDataset
 from ggfslam.data.paths import read_number_rows, require_dir
 from ggfslam.data.types import Camera
 from ggfslam.errors import DatasetError
@@ -78,7 +77,7 @@ def _numbered(folder: Path, pattern: re.Pattern) -> dict[int, Path]:
     return out
 
 
-class ReplicaDataset(RGBDDataset):
+class ReplicaDataset(ImageFileDataset):
     """A Replica sequence as rendered by NICE-SLAM; frame k is ``frame{k:06d}`` with pose on line k of traj.txt.
 
     ``traj.txt`` may hold more poses than there are images (the extra ones are ignored, but every line
@@ -122,21 +121,3 @@ class ReplicaDataset(RGBDDataset):
                                           f"{self.rgb_files[-1].name} (needs at least {need})")
         self._gt = poses[self.frame_numbers]  # [N, 4, 4]
         self._stamps = self.frame_numbers / float(fps)  # [N]
-
-    def _raw_len(self) -> int:
-        return len(self.frame_numbers)
-
-    def _raw_camera(self) -> Camera:
-        return self._cam
-
-    def _raw_timestamps(self) -> np.ndarray:
-        return self._stamps
-
-    def _raw_gt(self) -> np.ndarray | None:
-        return self._gt
-
-    def _load(self, raw_index: int) -> tuple[np.ndarray, np.ndarray, str]:
-        rgb_path = self.rgb_files[raw_index]
-        rgb = read_rgb(rgb_path)  # [H, W, 3]
-        depth = read_depth(self.depth_files[raw_index], self._cam.depth_scale)  # [H, W] metres
-        return rgb, depth, str(rgb_path)

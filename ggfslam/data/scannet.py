@@ -6,7 +6,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ggfslam.data.base import RGBDDataset
+from ggfslam.data.base import ImageFileDataset
 from ggfslam.data.imageio import read_depth, read_rgb
 from ggfslam.data.paths import list_files, read_matrix, require_dir
 from ggfslam.data.types import Camera
@@ -51,7 +51,7 @@ def read_scannet_pose(path: str | Path) -> np.ndarray | None:
     return T
 
 
-class ScanNetDataset(RGBDDataset):
+class ScanNetDataset(ImageFileDataset):
     """A ScanNet scene exported by ScanNet's SensReader; frame numbers come from the file names.
 
     Frames whose pose file is entirely non-finite (ScanNet's marker for a lost track) are skipped and listed
@@ -127,18 +127,6 @@ class ScanNetDataset(RGBDDataset):
             cam = Camera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h, SCANNET_DEPTH_SCALE)
             return cam.resized(depth_w, depth_h)
         raise DatasetError(depth_file, "intrinsics not found (nor intrinsic_color.txt): pass a Camera")
-
-    def _raw_len(self) -> int:
-        return len(self.frame_numbers)
-
-    def _raw_camera(self) -> Camera:
-        return self._cam
-
-    def _raw_timestamps(self) -> np.ndarray:
-        return self._stamps
-
-    def _raw_gt(self) -> np.ndarray | None:
-        return self._gt
 
     def _load(self, raw_index: int) -> tuple[np.ndarray, np.ndarray, str]:
         cam = self._raw_camera()

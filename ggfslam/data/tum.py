@@ -7,9 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ggfslam.data.base import RGBDDataset
+from ggfslam.data.base import ImageFileDataset
 from ggfslam.data.camera_file import CAMERA_FILE, read_camera_yaml
-from ggfslam.data.imageio import read_depth, read_rgb
 from ggfslam.data.trajectory_io import parse_numeric_lines, read_tum_trajectory
 from ggfslam.data.types import Camera
 from ggfslam.errors import DatasetError
@@ -111,7 +110,7 @@ def tum_default_camera(folder_name: str) -> Camera | None:
     return TUM_CAMERAS[found.pop()] if len(found) == 1 else None  # two different sensors named: ambiguous
 
 
-class TUMDataset(RGBDDataset):
+class TUMDataset(ImageFileDataset):
     """A TUM RGB-D sequence: colour frames paired with the nearest depth frame, ground truth interpolated.
 
     Frames are the colour images of ``rgb.txt`` that have a depth image in ``depth.txt`` within
@@ -180,21 +179,3 @@ class TUMDataset(RGBDDataset):
             return cam, "TUM published intrinsics for the folder name"
         raise DatasetError(self.root, f"no intrinsics: pass a Camera, write {CAMERA_FILE} in the folder, or name "
                                       f"the folder after its TUM sensor (freiburg1/2/3 or fr1/2/3)")
-
-    def _raw_len(self) -> int:
-        return len(self._stamps)
-
-    def _raw_camera(self) -> Camera:
-        return self._cam
-
-    def _raw_timestamps(self) -> np.ndarray:
-        return self._stamps
-
-    def _raw_gt(self) -> np.ndarray | None:
-        return self._gt
-
-    def _load(self, raw_index: int) -> tuple[np.ndarray, np.ndarray, str]:
-        rgb_path = self.rgb_files[raw_index]
-        rgb = read_rgb(rgb_path)  # [H, W, 3]
-        depth = read_depth(self.depth_files[raw_index], self._cam.depth_scale)  # [H, W] metres
-        return rgb, depth, str(rgb_path)

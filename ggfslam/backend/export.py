@@ -1,0 +1,228 @@
+"""Export of the SLAM factor graph (keyframes, landmarks, factors with their current errors) as JSON.
+
+The factors are the ones local bundle adjustment builds (``graph.observation_factor``: a robust virtual-stereo
+factor per RGB-D observation, a robust projection factor without depth; ``BetweenFactorPose3`` for a
+dense-odometry link), evaluated at the map's current estimates. Per factor two numbers are written:
+
+* ``error``: exactly GTSAM's ``factor.error(values)``. The observation factors carry a Huber kernel, so this
+  is 0.5 ||w||^2 for ||w|| <= k and k ||w|| - 0.5 k^2 beyond (w: residual / sigma, k: the Huber threshold).
+* ``chi2``: ||w||^2 without the kernel, what the outlier tests compare with the chi-square bounds.
+
+Observation errors are computed in numpy with GTSAM's formulas (thousands of factors per keyframe would take
+seconds one GTSAM call at a time); tests check them against ``factor.error`` on a sample.
+
+Layout (``FORMAT_VERSION``); keys are GTSAM symbols written as ``"x3"`` (keyframe 3) / ``"l120"`` (landmark 120),
+with their integer values in ``gtsam_keys``:
+
+* ``meta``: version, camera, virtual_baseline, sigmas and Huber thresholds, counts, per-type count and error sum;
+* ``keyframes``: id, key, frame_index, timestamp, T_wc (4x4 camera-to-world), n_landmarks (living ones seen);
+* ``landmarks``: id, key, position (world), observations (keyframes seeing it);
+* ``factors``: type (``rgbd_stereo`` | ``projection`` | ``odometry_link`` | ``loop``), keys, gtsam_keys, error, chi2;
+  observations add kf, lm, kp, uv, depth (0: none), sigma; links add kf, other_kf, T_other_this;
+* ``covisibility``: kf_a < kf_b, shared (living landmarks both see), only pairs sharing >= MIN_COVISIBILITY.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import gtsam
+import numpy as np
+
+from ggfslam.backend.graph import L, X
+from ggfslam.backend.slam_map import SlamMap
+from ggfslam.config import BackendConfig, TrackingConfig
+from ggfslam.data.types import Camera
+
+__all__ = ["FORMAT_VERSION", "graph_to_dict", "write_graph_json", "load_graph_networkx", "observation_errors",
+           "huber_loss", "MIN_COVISIBILITY"]
+
+FORMAT_VERSION = "ggfslam-graph/1"
+MIN_COVISIBILITY = 15  # shared landmarks for a covisibility edge (local BA's min_shared)
+
+
+def huber_loss(norm: np.ndarray, k: float) -> np.ndarray:
+    """GTSAM's Huber loss of whitened residual norms: 0.5 n^2 inside k, k n - 0.5 k^2 outside."""
+    return np.where(norm <= k, 0.5 * norm ** 2, k * norm - 0.5 * k * k)
+
+
+def observation_errors(T_wc: np.ndarray, points: np.ndarray, uv: np.ndarray, depth: np.ndarray,
+                       sigma: np.ndarray, camera: Camera, baseline: float, huber_stereo: float,
+                       huber_mono: float) -> tuple[np.ndarray, np.ndarray]:
+    """GTSAM errors [M] and kernel-free chi2 [M] of M observation factors (stereo where depth > 0, else mono).
+
+    T_wc [M, 4, 4] observing poses, points [M, 3] world landmarks, uv [M, 2] keypoints, depth [M], sigma [M].
+    """
+    R, t = T_wc[:, :3, :3], T_wc[:, :3, 3]
+    q = np.einsum("mji,mj->mi", R, points - t)  # [M, 3] R^T (p - t): the point in the camera frame
+    behind = q[:, 2] <= 0  # GTSAM's cheirality exception: the factor returns a constant 2 fx residual
+    inv_z = 1.0 / np.where(behind, 1.0, q[:, 2])
+    u = camera.cx + camera.fx * q[:, 0] * inv_z
+    v = camera.cy + camera.fy * q[:, 1] * inv_z
+    stereo = depth > 0
+    # virtual right-image coordinate of the measurement and of the prediction (graph.observation_factor)
+    ur_meas = uv[:, 0] - camera.fx * baseline / np.where(stereo, depth, 1.0)
+    ur_pred = u - camera.fx * baseline * inv_z
+    sq = (u - uv[:, 0]) ** 2 + (v - uv[:, 1]) ** 2 + np.where(stereo, (ur_pred - ur_meas) ** 2, 0.0)
+    sq = np.where(behind, np.where(stereo, 3.0, 2.0) * (2.0 * camera.fx) ** 2, sq)
+    chi2 = sq / sigma ** 2
+    norm = np.sqrt(chi2)
+    error = np.where(stereo, huber_loss(norm, huber_stereo), huber_loss(norm, huber_mono))
+    return error, chi2
+
+
+def _key_name(kind: str, i: int) -> str:
+    return f"{kind}{i}"
+
+
+def graph_to_dict(smap: SlamMap, camera: Camera, tcfg: TrackingConfig, bcfg: BackendConfig) -> dict:
+    """The map's factor graph as a JSON-ready dict (see the module docstring)."""
+    level_scale = tcfg.scale_factor ** np.arange(tcfg.n_levels)  # [L]
+    with smap.lock:  # one consistent snapshot even if a backend thread is still running
+        kf_ids = sorted(smap.keyframes)
+        kfs = [smap.keyframes[k] for k in kf_ids]
+        poses = {k: smap.keyframes[k].T_wc.copy() for k in kf_ids}
+        lm_ids = smap.alive_ids()  # [P]
+        positions = smap.positions[lm_ids].copy()  # [P, 3]
+        obs_kf, obs_lm, obs_kp = [], [], []
+        for lm in lm_ids:
+            for k, kp in smap.observations[lm].items():
+                if k in poses:
+                    obs_kf.append(k)
+                    obs_lm.append(int(lm))
+                    obs_kp.append(kp)
+        links = [(kf.id, *kf.meta["odometry_link"]) for kf in kfs if "odometry_link" in kf.meta]
+        loops = list(smap.loops)
+        n_obs_per_lm = {int(lm): len(smap.observations[lm]) for lm in lm_ids}
+        kf_n_landmarks = {}
+        for kf in kfs:
+            ids = kf.landmark_ids[kf.landmark_ids >= 0]
+            kf_n_landmarks[kf.id] = int(smap.alive[ids].sum())
+        feats = {k: smap.keyframes[k].features for k in kf_ids}
+
+    obs_kf = np.asarray(obs_kf, dtype=np.int64)  # [M]
+    obs_lm = np.asarray(obs_lm, dtype=np.int64)  # [M]
+    obs_kp = np.asarray(obs_kp, dtype=np.int64)  # [M]
+    m = len(obs_kf)
+    uv, depth, octave = np.zeros((m, 2)), np.zeros(m), np.zeros(m, dtype=np.int64)
+    for k in np.unique(obs_kf):  # gather keypoint data per keyframe (vectorised within each)
+        sel = np.nonzero(obs_kf == k)[0]
+        f = feats[int(k)]
+        uv[sel] = f.uv[obs_kp[sel]]
+        depth[sel] = f.depth[obs_kp[sel]]
+        octave[sel] = f.octave[obs_kp[sel]]
+    sigma = tcfg.pixel_sigma * level_scale[octave]  # [M]
+    lm_row = np.searchsorted(lm_ids, obs_lm)  # [M] row of each observed landmark (alive_ids is sorted)
+    kf_row = np.searchsorted(kf_ids, obs_kf)  # [M]
+    pose_all = np.stack([poses[k] for k in kf_ids]) if kf_ids else np.zeros((0, 4, 4))  # [K, 4, 4]
+    error, chi2 = observation_errors(pose_all[kf_row], positions[lm_row], uv, depth, sigma, camera,
+                                     tcfg.virtual_baseline, bcfg.huber_stereo, bcfg.huber_mono)
+
+    factors = []
+    for i in range(m):
+        k, lm = int(obs_kf[i]), int(obs_lm[i])
+        factors.append({
+            "type": "rgbd_stereo" if depth[i] > 0 else "projection",
+            "keys": [_key_name("x", k), _key_name("l", lm)], "gtsam_keys": [X(k), L(lm)],
+            "kf": k, "lm": lm, "kp": int(obs_kp[i]), "uv": uv[i].tolist(), "depth": float(depth[i]),
+            "sigma": float(sigma[i]),
+            "error": float(error[i]), "chi2": float(chi2[i]),
+        })
+    # dense-odometry links: few, so GTSAM evaluates them directly (same factor as local_ba builds)
+    s_rot, s_trans = tcfg.dense_link_sigmas
+    link_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([s_rot] * 3 + [s_trans] * 3))
+    for k, other, T_other_k in links:
+        if other not in poses:
+            continue
+        f = gtsam.BetweenFactorPose3(X(other), X(k), gtsam.Pose3(T_other_k), link_noise)
+        values = gtsam.Values()
+        values.insert(X(other), gtsam.Pose3(poses[other]))
+        values.insert(X(k), gtsam.Pose3(poses[k]))
+        err = float(f.error(values))
+        factors.append({
+            "type": "odometry_link", "keys": [_key_name("x", other), _key_name("x", k)],
+            "gtsam_keys": [X(other), X(k)], "kf": k, "other_kf": int(other),
+            "T_other_this": np.asarray(T_other_k).tolist(), "error": err, "chi2": 2.0 * err,
+        })
+
+    for match, query, T_mq, cov in loops:
+        if match not in poses or query not in poses:
+            continue
+        f = gtsam.BetweenFactorPose3(X(match), X(query), gtsam.Pose3(T_mq), gtsam.noiseModel.Gaussian.Covariance(cov))
+        values = gtsam.Values()
+        values.insert(X(match), gtsam.Pose3(poses[match]))
+        values.insert(X(query), gtsam.Pose3(poses[query]))
+        err = float(f.error(values))
+        factors.append({
+            "type": "loop", "keys": [_key_name("x", match), _key_name("x", query)],
+            "gtsam_keys": [X(match), X(query)], "kf": int(query), "other_kf": int(match),
+            "T_other_this": np.asarray(T_mq).tolist(), "error": err, "chi2": 2.0 * err,
+        })
+
+    # covisibility: shared living landmarks per keyframe pair = off-diagonal of A A^T (A: keyframe x landmark)
+    covis = []
+    if m:
+        from scipy.sparse import coo_matrix
+
+        A = coo_matrix((np.ones(m), (kf_row, lm_row)), shape=(len(kf_ids), len(lm_ids))).tocsr()
+        S = (A @ A.T).tocoo()
+        for a, b, c in zip(S.row, S.col, S.data):
+            if a < b and c >= MIN_COVISIBILITY:
+                covis.append({"kf_a": kf_ids[a], "kf_b": kf_ids[b], "shared": int(c)})
+        covis.sort(key=lambda e: (e["kf_a"], e["kf_b"]))
+
+    by_type: dict[str, dict] = {}
+    for f in factors:
+        d = by_type.setdefault(f["type"], {"count": 0, "error": 0.0})
+        d["count"] += 1
+        d["error"] += f["error"]
+    return {
+        "meta": {
+            "version": FORMAT_VERSION, "camera": camera.to_dict(), "virtual_baseline": tcfg.virtual_baseline,
+            "pixel_sigma": tcfg.pixel_sigma, "scale_factor": tcfg.scale_factor,
+            "huber_stereo": bcfg.huber_stereo, "huber_mono": bcfg.huber_mono,
+            "dense_link_sigmas": list(tcfg.dense_link_sigmas), "min_covisibility": MIN_COVISIBILITY,
+            "error_definition": "GTSAM factor.error (Huber kernel on observations); chi2 = squared whitened "
+                                "residual without kernel",
+            "counts": {"keyframes": len(kf_ids), "landmarks": len(lm_ids), "factors": len(factors),
+                       "observations": m, "covisibility_edges": len(covis)},
+            "factors_by_type": by_type,
+        },
+        "keyframes": [{"id": kf.id, "key": _key_name("x", kf.id), "frame_index": int(kf.frame_index),
+                       "timestamp": float(kf.timestamp), "T_wc": poses[kf.id].tolist(),
+                       "n_landmarks": kf_n_landmarks[kf.id]} for kf in kfs],
+        "landmarks": [{"id": int(lm), "key": _key_name("l", int(lm)), "position": positions[i].tolist(),
+                       "observations": n_obs_per_lm[int(lm)]} for i, lm in enumerate(lm_ids)],
+        "factors": factors,
+        "covisibility": covis,
+    }
+
+
+def write_graph_json(path: str | Path, smap: SlamMap, camera: Camera, tcfg: TrackingConfig,
+                     bcfg: BackendConfig) -> dict:
+    """Write the factor graph to ``path`` (compact JSON, atomically) and return its dict."""
+    path = Path(path)
+    data = graph_to_dict(smap, camera, tcfg, bcfg)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    # compact: tens of thousands of factors; indentation would triple the file
+    tmp.write_text(json.dumps(data, separators=(",", ":")) + "\n")
+    tmp.replace(path)
+    return data
+
+
+def load_graph_networkx(path: str | Path):
+    """A networkx.Graph of a graph.json: keyframe and landmark nodes (by key), one edge per factor."""
+    try:
+        import networkx as nx
+    except ImportError:
+        raise ImportError("load_graph_networkx needs networkx: pip install networkx") from None
+    data = json.loads(Path(path).read_text())
+    g = nx.Graph(meta=data["meta"], covisibility=data["covisibility"])
+    for kf in data["keyframes"]:
+        g.add_node(kf["key"], kind="keyframe", **{k: v for k, v in kf.items() if k != "key"})
+    for lm in data["landmarks"]:
+        g.add_node(lm["key"], kind="landmark", **{k: v for k, v in lm.items() if k != "key"})
+    for f in data["factors"]:
+        a, b = f["keys"]
+        g.add_edge(a, b, **{k: v for k, v in f.items() if k != "keys"})
+    return g

@@ -1,0 +1,132 @@
+"""CPU backend: the numba kernels of ``kernels_cpu`` wrapped in one ``torch.autograd.Function``.
+
+One autograd node covers projection + rasterization, so torch does no per-Gaussian work: the forward
+returns the channel image [H, W, 4+K] (r, g, b, raw depth, extras) and the accumulated alpha [H, W];
+the backward returns gradients for means, quats, scales, opacities, colours, extras, the world-to-camera
+rotation and translation (float64; torch chains them to ``pose_xi``), the background, and a
+"probe" [N, 2] whose gradient is dL/dmeans2d (the densification statistic; its value is not used).
+Inputs are converted to contiguous float32 numpy arrays (no copy when already so).
+"""
+from __future__ import annotations
+
+import numba
+import numpy as np
+import torch
+
+from ggfslam.render import kernels_cpu as kc
+from ggfslam.render.types import Intrinsics, RenderSettings
+
+
+class CpuRenderInfo:
+    """Per-render byproducts filled by the forward pass (numpy arrays)."""
+
+    radii: np.ndarray  # [N] int32
+    visible: np.ndarray  # [N] bool
+    means2d: np.ndarray  # [N, 2] float32
+    depths: np.ndarray  # [N] float32
+    n_pairs: int = 0  # (tile, Gaussian) pairs
+
+
+def _np32(t: torch.Tensor) -> np.ndarray:
+    return t.detach().to(torch.float32).contiguous().numpy()
+
+
+class _RasterizeCPU(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, colors, extras, R_cw, t_cw, probe, background,
+                intr: Intrinsics, settings: RenderSettings, info: CpuRenderInfo):
+        W, H = intr.width, intr.height
+        n = means.shape[0]
+        m_np, q_np, s_np, o_np, c_np = (_np32(means), _np32(quats), _np32(scales), _np32(opacities), _np32(colors))
+        e_np = _np32(extras) if extras is not None else np.zeros((n, 0), np.float32)
+        K = e_np.shape[1]
+        C = 4 + K
+        R = R_cw.detach().to(torch.float64).contiguous().numpy()
+        t = t_cw.detach().to(torch.float64).contiguous().numpy()
+        rec = np.empty((n, kc.REC), np.float32)
+        radii = np.empty(n, np.int32)
+        valid = np.empty(n, np.bool_)
+        nworkers = max(1, numba.get_num_threads())
+        kc.project_forward(m_np, q_np, s_np, o_np, R, t, intr.fx, intr.fy, intr.cx, intr.cy, W, H,
+                           float(settings.near_plane), float(settings.far_plane), float(settings.eps2d),
+                           rec, radii, valid, nworkers)
+        vis, tile_start, pk, pf, pair_start, pair_slot, tile_cost = kc.bin_tiles(valid, rec, c_np, e_np, W, H,
+                                                                                 nworkers)
+        bg = np.zeros(C, np.float64)
+        bg[:3] = background.detach().to(torch.float64).numpy()
+        out = np.empty((H, W, C), np.float32)
+        tfinal = np.empty((H, W), np.float32)
+        last = np.empty((H, W), np.int64)
+        work_bwd = np.empty(tile_cost.shape[0], np.float64)
+        kc.raster_forward(pk, pf, tile_start, kc.tile_order(tile_cost), bg, W, H, out, tfinal, last, work_bwd,
+                          nworkers)
+        info.radii, info.visible = radii, valid
+        info.means2d = rec[:, kc.R_MX:kc.R_MY + 1]
+        info.depths = rec[:, kc.R_Z]
+        info.n_pairs = int(pk.shape[0])
+        ctx.save_for_backward(means, quats, scales, R_cw, t_cw)
+        ctx.np = (vis, tile_start, pk, pf, pair_start, pair_slot, bg, tfinal, last, work_bwd, K)
+        ctx.intr, ctx.settings, ctx.n = intr, settings, n
+        img = torch.from_numpy(out)
+        alpha = torch.from_numpy(1.0 - tfinal)
+        return img, alpha
+
+    @staticmethod
+    def backward(ctx, g_img, g_alpha):
+        means, quats, scales, R_cw, t_cw = ctx.saved_tensors
+        (vis, tile_start, pk, pf, pair_start, pair_slot, bg, tfinal, last, work_bwd, K) = ctx.np
+        intr, settings, n = ctx.intr, ctx.settings, ctx.n
+        W, H = intr.width, intr.height
+        C = 4 + K
+        go = np.zeros((H, W, C), np.float32) if g_img is None else _np32(g_img)
+        ga = np.zeros((H, W), np.float32) if g_alpha is None else _np32(g_alpha)
+        pg = np.empty((pk.shape[0], kc.N_GEO + C), np.float32)
+        nworkers = max(1, numba.get_num_threads())
+        kc.raster_backward(pk, pf, pair_slot, tile_start, kc.tile_order(work_bwd), bg, W, H, go, ga, tfinal, last,
+                           pg, nworkers)
+        g_means = np.zeros((n, 3), np.float32)
+        g_quats = np.zeros((n, 4), np.float32)
+        g_scales = np.zeros((n, 3), np.float32)
+        g_opac = np.zeros(n, np.float32)
+        g_colors = np.zeros((n, 3), np.float32)
+        g_extras = np.zeros((n, K), np.float32)
+        g_m2d = np.zeros((n, 2), np.float32)
+        nv = vis.shape[0]
+        nchunks = max(1, (nv + 255) // 256)
+        g_pose = np.zeros((nchunks, 12), np.float64)
+        R = R_cw.detach().to(torch.float64).contiguous().numpy()
+        t = t_cw.detach().to(torch.float64).contiguous().numpy()
+        kc.project_backward(_np32(means), _np32(quats), _np32(scales), R, t, intr.fx, intr.fy, intr.cx, intr.cy,
+                            W, H, float(settings.eps2d), vis, pair_start, pg, g_means, g_quats, g_scales,
+                            g_opac, g_colors, g_extras, g_m2d, g_pose, nworkers)
+        gp = g_pose.sum(axis=0)
+        need = ctx.needs_input_grad
+        g_bg = None
+        if need[9] and g_img is not None:
+            g_bg = (g_img[..., :3] * torch.from_numpy(tfinal)[..., None].to(g_img.dtype)).sum(dim=(0, 1))
+        ctx.np = None  # free the pair buffers as soon as possible
+        return (
+            torch.from_numpy(g_means) if need[0] else None,
+            torch.from_numpy(g_quats) if need[1] else None,
+            torch.from_numpy(g_scales) if need[2] else None,
+            torch.from_numpy(g_opac) if need[3] else None,
+            torch.from_numpy(g_colors) if need[4] else None,
+            torch.from_numpy(g_extras) if need[5] else None,
+            torch.from_numpy(gp[:9].reshape(3, 3).copy()) if need[6] else None,
+            torch.from_numpy(gp[9:].copy()) if need[7] else None,
+            torch.from_numpy(g_m2d) if need[8] else None,
+            g_bg,
+            None, None, None,
+        )
+
+
+def rasterize_cpu(means, quats, scales, opacities, colors, extras, T_cw, intr: Intrinsics,
+                  settings: RenderSettings, background: torch.Tensor, probe: torch.Tensor | None):
+    """Render with the compiled kernels. ``T_cw`` [4, 4] float64 (may carry grad). Returns
+    (image [H, W, 4+K], alpha [H, W], CpuRenderInfo)."""
+    info = CpuRenderInfo()
+    R_cw = T_cw[:3, :3]
+    t_cw = T_cw[:3, 3]
+    img, alpha = _RasterizeCPU.apply(means, quats, scales, opacities, colors, extras, R_cw, t_cw, probe,
+                                     background, intr, settings, info)
+    return img, alpha, info

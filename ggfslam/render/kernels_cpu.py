@@ -1,0 +1,960 @@
+"""Compiled CPU kernels (numba) of the 3DGS rasterizer: projection, depth sort, tile binning, forward, backward.
+
+Everything here works on numpy arrays; ``ggfslam.render.cpu`` wraps it in a ``torch.autograd.Function``.
+
+Pipeline (one render)
+1. ``project_forward`` (parallel over Gaussians): world -> camera, EWA 2D covariance with the ``eps2d``
+   (0.3 px) blur, conic, pixel centre, view depth, 3-sigma radius and the *exact* pixel box where
+   ``alpha = opacity * exp(power) >= 1/255`` (half-extents ``sqrt(2 ln(255 o) Sigma2_xx)``, ``..._yy``),
+   clipped to the image. A conservative screen-space test (2D extent bounded by the largest scale)
+   rejects off-screen Gaussians before their covariance is built. Culled: depth outside [near, far],
+   opacity < 1/255, non-finite values, empty box. Each Gaussian's result is one 64-byte float32 record.
+2. ``bin_tiles``: compaction, radix sort of the visible Gaussians by view depth, per-tile lists (16x16
+   tiles, depth order inside a tile). Every (tile, Gaussian) pair gets a *copy* of the Gaussian's record
+   and features, stored tile after tile: the rasterizers then read memory sequentially instead of
+   chasing one cache miss per pair (that alone halved the forward pass). Also: per-Gaussian lists of
+   its pairs (to sum gradients without atomics) and per-tile cost estimates.
+3. ``split_groups``: a longest-processing-time split of the tiles into one group per thread (numba's
+   OpenMP layer schedules ``prange`` statically; without it the busier half of the image decides).
+4. ``raster_forward`` (parallel over tile groups): front-to-back compositing. Each Gaussian visits only
+   the pixels of its own box inside the tile; a pixel stops when its transmittance would fall below
+   1e-4 (that Gaussian is not blended: the 3DGS rule); a tile stops when all its pixels have stopped.
+   ``exp(power)`` comes from multiplicative recurrences (power is quadratic in x and y): libm ``exp``
+   runs three times per (Gaussian, tile) pair, or twice per row in "chord" mode for very elongated,
+   diagonal ellipses whose box corners would underflow. Channels ``[r, g, b, z, extras...]``; the
+   background goes to the colour channels only.
+5. ``raster_backward`` (parallel over tile groups): back to front over each pixel's contributors, with
+   the same recurrences (bit-identical alphas), transmittance recovered by division by ``1 - alpha``
+   (alpha <= 0.99). Per pixel a single scalar ``R = dL/dC . (what lies behind) + T_final (bg . dL/dC
+   - dL/dalpha_acc)`` carries everything behind. Per-pair gradient sums are written once per pair.
+6. ``project_backward`` (parallel over visible Gaussians): sums its pairs, then the chain rule through
+   conic -> 2D covariance -> (Jacobian, world-to-camera rotation, 3D covariance) -> quaternion, scales,
+   and through the pixel centre and depth to the mean and the pose (dL/dR_cw, dL/dt_cw summed per chunk).
+
+Numerics: inputs float32; projection and compositing arithmetic in float64 scalars; records, images and
+per-pair gradients stored as float32. The alpha clamp at 0.99 has zero gradient where active (as torch's
+``clamp``). Forward and backward kernels evaluate alpha with identical code, so they agree on every
+pixel's contributors.
+
+numba caching: ``cache=True``; unless ``NUMBA_CACHE_DIR`` is set, the cache goes to
+``~/.cache/ggfslam/numba`` (outside the repository). Threads: ``numba.set_num_threads`` is respected
+(the caller's setting decides the number of tile groups).
+"""
+from __future__ import annotations
+
+import os
+
+if not os.environ.get("NUMBA_CACHE_DIR"):
+    os.environ["NUMBA_CACHE_DIR"] = os.path.join(os.path.expanduser("~"), ".cache", "ggfslam", "numba")
+
+import numba  # noqa: E402
+import numpy as np  # noqa: E402
+from numba import njit, prange, types  # noqa: E402
+from numba.core import cgutils  # noqa: E402
+from numba.extending import intrinsic  # noqa: E402
+
+if not numba.config.CACHE_DIR:  # numba was imported before the variable was set: point it there anyway
+    numba.config.CACHE_DIR = os.environ["NUMBA_CACHE_DIR"]
+
+TILE = 16  # tile side in pixels
+ALPHA_MIN = 1.0 / 255.0  # contributions below this alpha are skipped
+ALPHA_MAX = 0.99  # alpha clamp
+T_MIN = 1e-4  # a pixel stops before its transmittance would fall below this
+BOX_REL_MARGIN = 1e-4  # the pixel box is enlarged a little; the kernels still test alpha exactly
+BOX_ABS_MARGIN = 1e-3
+Q_REL_MARGIN = 1e-4  # chord mode: q_max = 2 ln(255 o) (1 + 1e-4) + 1e-4
+Q_ABS_MARGIN = 1e-4
+SPAN_MARGIN = 1e-3  # chord mode: px added on both ends of a row span
+CHORD_RHO2 = 0.96 ** 2  # squared correlation above which an ellipse uses chord mode
+LOG255X2 = 2.0 * np.log(255.0)
+
+CHUNK = 1024  # Gaussians per work item of the per-Gaussian kernels
+
+
+@intrinsic
+def _fetch_add(typingctx, counter, val):
+    """Atomically ``old = counter[0]; counter[0] += val``; returns ``old`` (counter: 1-D int64 array).
+
+    Used for dynamic scheduling: every worker of a ``prange`` over workers pulls the next work item, so a
+    thread that the OS preempts (another process on the same 2 cores) does not hold back a static half of
+    the work. (numba's OpenMP layer splits ``prange`` statically; measured under contention, static
+    halves ran 3.5x slower than one thread.)"""
+    if not (isinstance(counter, types.Array) and counter.dtype == types.int64):
+        return None
+    sig = types.int64(counter, types.int64)
+
+    def codegen(context, builder, signature, args):
+        arrty = signature.args[0]
+        ary = context.make_array(arrty)(context, builder, args[0])
+        zero = context.get_constant(types.intp, 0)
+        ptr = cgutils.get_item_pointer(context, builder, arrty, ary, [zero], wraparound=False)
+        return builder.atomic_rmw("add", ptr, args[1], "monotonic")
+
+    return sig, codegen
+
+
+# record of a projected Gaussian (float32 x 16)
+R_MX, R_MY, R_CA, R_CB, R_CC, R_OP, R_QMAX, R_EA, R_EB, R_EC, R_CHORD, R_Z, R_X0, R_X1, R_Y0, R_Y1 = range(16)
+REC = 16
+# per-pair gradient record: d/d[mean_x, mean_y, conic_a, conic_b, conic_c, opacity, feat...]
+N_GEO = 6
+
+
+@njit(cache=True, parallel=True)
+def project_forward(means, quats, scales, opac, Rcw, tcw, fx, fy, cx, cy, width, height, near, far, eps2d,
+                    rec, radii, valid, nworkers):
+    """Project N Gaussians. Outputs (preallocated): rec [N, 16] f32 (see R_* fields; conic (a, b, c) with
+    power = -0.5 (a dx^2 + c dy^2) - b dx dy, dx = mean_x - u; box x0, x1, y0, y1 inclusive), radii [N] i32
+    (3-sigma, px; 0 when culled), valid [N] bool. rec[:, R_Z] holds the view depth of every Gaussian
+    (0 where not finite); other fields of culled Gaussians are 0."""
+    n = means.shape[0]
+    tanx = 0.5 * width / fx
+    tany = 0.5 * height / fy
+    limxp = (width - cx) / fx + 0.3 * tanx
+    limxn = cx / fx + 0.3 * tanx
+    limyp = (height - cy) / fy + 0.3 * tany
+    limyn = cy / fy + 0.3 * tany
+    limx2 = max(limxp, limxn) ** 2
+    limy2 = max(limyp, limyn) ** 2
+    nchunks = (n + CHUNK - 1) // CHUNK
+    counter = np.zeros(1, np.int64)
+    for _w in prange(nworkers):
+        while True:
+            ch = _fetch_add(counter, np.int64(1))
+            if ch >= nchunks:
+                break
+            for i in range(ch * CHUNK, min(n, (ch + 1) * CHUNK)):
+                _project_one(i, means, quats, scales, opac, Rcw, tcw, fx, fy, cx, cy, width, height, near, far,
+                             eps2d, rec, radii, valid, limxp, limxn, limyp, limyn, limx2, limy2)
+
+
+@njit(cache=True, inline="always")
+def _project_one(i, means, quats, scales, opac, Rcw, tcw, fx, fy, cx, cy, width, height, near, far, eps2d,
+                 rec, radii, valid, limxp, limxn, limyp, limyn, limx2, limy2):
+    """Project Gaussian i (the body of ``project_forward``)."""
+    for f in range(REC):
+        rec[i, f] = 0.0
+    valid[i] = False
+    radii[i] = 0
+    pwx = np.float64(means[i, 0])
+    pwy = np.float64(means[i, 1])
+    pwz = np.float64(means[i, 2])
+    x = Rcw[0, 0] * pwx + Rcw[0, 1] * pwy + Rcw[0, 2] * pwz + tcw[0]
+    y = Rcw[1, 0] * pwx + Rcw[1, 1] * pwy + Rcw[1, 2] * pwz + tcw[1]
+    z = Rcw[2, 0] * pwx + Rcw[2, 1] * pwy + Rcw[2, 2] * pwz + tcw[2]
+    rec[i, R_Z] = z if np.isfinite(z) else 0.0
+    if not (z >= near and z <= far):
+        return
+    o = np.float64(opac[i])
+    if not (o >= ALPHA_MIN):
+        return
+    s0 = np.float64(scales[i, 0])
+    s1 = np.float64(scales[i, 1])
+    s2 = np.float64(scales[i, 2])
+    rz = 1.0 / z
+    rx = x * rz
+    ry = y * rz
+    mx = fx * rx + cx
+    my = fy * ry + cy
+    # conservative screen-space cull: Sigma2_xx <= |row0(J)|^2 max(s)^2 + eps2d, opacity <= 1
+    smax2 = max(s0 * s0, max(s1 * s1, s2 * s2))
+    bx = np.sqrt(LOG255X2 * ((fx * rz) ** 2 * (1.0 + limx2) * smax2 + eps2d)) * 1.01 + 1.0
+    by = np.sqrt(LOG255X2 * ((fy * rz) ** 2 * (1.0 + limy2) * smax2 + eps2d)) * 1.01 + 1.0
+    if mx + bx < 0.0 or mx - bx > width - 1.0 or my + by < 0.0 or my - by > height - 1.0:
+        return
+    # 3D covariance from the unit quaternion (w, x, y, z) and the scales
+    qw = np.float64(quats[i, 0])
+    qx = np.float64(quats[i, 1])
+    qy = np.float64(quats[i, 2])
+    qz = np.float64(quats[i, 3])
+    qn = max(np.sqrt(qw * qw + qx * qx + qy * qy + qz * qz), 1e-12)
+    qw /= qn
+    qx /= qn
+    qy /= qn
+    qz /= qn
+    r00 = 1.0 - 2.0 * (qy * qy + qz * qz)
+    r01 = 2.0 * (qx * qy - qw * qz)
+    r02 = 2.0 * (qx * qz + qw * qy)
+    r10 = 2.0 * (qx * qy + qw * qz)
+    r11 = 1.0 - 2.0 * (qx * qx + qz * qz)
+    r12 = 2.0 * (qy * qz - qw * qx)
+    r20 = 2.0 * (qx * qz - qw * qy)
+    r21 = 2.0 * (qy * qz + qw * qx)
+    r22 = 1.0 - 2.0 * (qx * qx + qy * qy)
+    m00 = r00 * s0
+    m01 = r01 * s1
+    m02 = r02 * s2
+    m10 = r10 * s0
+    m11 = r11 * s1
+    m12 = r12 * s2
+    m20 = r20 * s0
+    m21 = r21 * s1
+    m22 = r22 * s2
+    S00 = m00 * m00 + m01 * m01 + m02 * m02
+    S01 = m00 * m10 + m01 * m11 + m02 * m12
+    S02 = m00 * m20 + m01 * m21 + m02 * m22
+    S11 = m10 * m10 + m11 * m11 + m12 * m12
+    S12 = m10 * m20 + m11 * m21 + m12 * m22
+    S22 = m20 * m20 + m21 * m21 + m22 * m22
+    # projection Jacobian with the usual clamp of x/z, y/z
+    tx = z * min(limxp, max(-limxn, rx))
+    ty = z * min(limyp, max(-limyn, ry))
+    j00 = fx * rz
+    j02 = -fx * tx * rz * rz
+    j11 = fy * rz
+    j12 = -fy * ty * rz * rz
+    # T2 = J Rcw (2x3)
+    a00 = j00 * Rcw[0, 0] + j02 * Rcw[2, 0]
+    a01 = j00 * Rcw[0, 1] + j02 * Rcw[2, 1]
+    a02 = j00 * Rcw[0, 2] + j02 * Rcw[2, 2]
+    a10 = j11 * Rcw[1, 0] + j12 * Rcw[2, 0]
+    a11 = j11 * Rcw[1, 1] + j12 * Rcw[2, 1]
+    a12 = j11 * Rcw[1, 2] + j12 * Rcw[2, 2]
+    # Sigma2 = T2 Sigma T2^T
+    u0 = S00 * a00 + S01 * a01 + S02 * a02
+    u1 = S01 * a00 + S11 * a01 + S12 * a02
+    u2 = S02 * a00 + S12 * a01 + S22 * a02
+    v0 = S00 * a10 + S01 * a11 + S02 * a12
+    v1 = S01 * a10 + S11 * a11 + S12 * a12
+    v2 = S02 * a10 + S12 * a11 + S22 * a12
+    ca = a00 * u0 + a01 * u1 + a02 * u2 + eps2d
+    cb = a10 * u0 + a11 * u1 + a12 * u2
+    cc = a10 * v0 + a11 * v1 + a12 * v2 + eps2d
+    det = ca * cc - cb * cb
+    if not (det > 0.0 and np.isfinite(det) and np.isfinite(mx) and np.isfinite(my)):
+        return
+    # exact box of alpha >= 1/255:  d^T Sigma2^-1 d <= 2 ln(255 o)
+    k2 = 2.0 * np.log(255.0 * o)
+    ex = np.sqrt(k2 * ca) * (1.0 + BOX_REL_MARGIN) + BOX_ABS_MARGIN
+    ey = np.sqrt(k2 * cc) * (1.0 + BOX_REL_MARGIN) + BOX_ABS_MARGIN
+    fx0 = max(np.ceil(mx - ex), 0.0)
+    fx1 = min(np.floor(mx + ex), width - 1.0)
+    fy0 = max(np.ceil(my - ey), 0.0)
+    fy1 = min(np.floor(my + ey), height - 1.0)
+    if not (fx0 <= fx1 and fy0 <= fy1):
+        return
+    idet = 1.0 / det
+    qa = np.float32(cc * idet)  # the conic as the rasterizers will see it
+    qb = np.float32(-cb * idet)
+    qc = np.float32(ca * idet)
+    mid = 0.5 * (ca + cc)
+    lam = mid + np.sqrt(max(0.1, mid * mid - det))
+    valid[i] = True
+    radii[i] = np.int32(np.ceil(3.0 * np.sqrt(lam)))
+    rec[i, R_MX] = mx
+    rec[i, R_MY] = my
+    rec[i, R_CA] = qa
+    rec[i, R_CB] = qb
+    rec[i, R_CC] = qc
+    rec[i, R_OP] = o
+    rec[i, R_QMAX] = k2 * (1.0 + Q_REL_MARGIN) + Q_ABS_MARGIN
+    rec[i, R_EA] = np.exp(-np.float64(qa))
+    rec[i, R_EB] = np.exp(-np.float64(qb))
+    rec[i, R_EC] = np.exp(-np.float64(qc))
+    # recurrence mode needs |correlation| <= 0.96: box corners then have power >= -q_max / 0.08
+    rec[i, R_CHORD] = 1.0 if np.float64(qb) ** 2 > CHORD_RHO2 * np.float64(qa) * np.float64(qc) else 0.0
+    rec[i, R_X0] = fx0
+    rec[i, R_X1] = fx1
+    rec[i, R_Y0] = fy0
+    rec[i, R_Y1] = fy1
+
+
+@njit(cache=True)
+def _radix_argsort_positive(keys):
+    """Stable argsort of non-negative float32 keys (bit patterns sort like the values). Returns int32."""
+    n = keys.shape[0]
+    bits = keys.view(np.uint32)
+    idx = np.arange(n).astype(np.int32)
+    tmp = np.empty(n, np.int32)
+    counts = np.empty(2048, np.int64)
+    for shift in (0, 11, 22):
+        counts[:] = 0
+        for j in range(n):
+            counts[(bits[idx[j]] >> shift) & 2047] += 1
+        tot = 0
+        for b in range(2048):
+            c = counts[b]
+            counts[b] = tot
+            tot += c
+        for j in range(n):
+            b = (bits[idx[j]] >> shift) & 2047
+            tmp[counts[b]] = idx[j]
+            counts[b] += 1
+        idx, tmp = tmp, idx
+    return idx
+
+
+@njit(cache=True, parallel=True)
+def bin_tiles(valid, rec, colors, extras, width, height, nworkers):
+    """Depth-sort the visible Gaussians and build the tile lists with per-pair copies of their data.
+
+    Returns
+      vis [Nv] i32: original index of each visible Gaussian (ascending index order, "compact" order);
+      tile_start [ntiles+1] i64: pairs of tile t are tile_start[t]:tile_start[t+1], in depth order;
+      pk [npairs, 16] f32: record of the pair's Gaussian; pf [npairs, 4+K] f32: its (r, g, b, z, extras);
+      pair_start [Nv+1] i64, pair_slot [npairs] i64: pair k's slot in Gaussian-major order; the slots of
+      compact Gaussian j are pair_start[j]:pair_start[j+1] (the backward writes gradients by slot);
+      tile_cost [ntiles] f64: estimated forward cost of each tile."""
+    n = valid.shape[0]
+    K = extras.shape[1]
+    C = 4 + K
+    nv = 0
+    for i in range(n):
+        if valid[i]:
+            nv += 1
+    # compaction: copies of the visible records / features in index order. Random accesses below only
+    # touch these small arrays (page-table misses on big arrays cost ~100 ns each in a VM).
+    vis = np.empty(nv, np.int32)
+    keys = np.empty(nv, np.float32)
+    crec = np.empty((nv, REC), np.float32)
+    cfeat = np.empty((nv, C), np.float32)
+    j = 0
+    for i in range(n):
+        if valid[i]:
+            vis[j] = i
+            keys[j] = rec[i, R_Z]
+            for f in range(REC):
+                crec[j, f] = rec[i, f]
+            cfeat[j, 0] = colors[i, 0]
+            cfeat[j, 1] = colors[i, 1]
+            cfeat[j, 2] = colors[i, 2]
+            cfeat[j, 3] = rec[i, R_Z]
+            for c in range(K):
+                cfeat[j, 4 + c] = extras[i, c]
+            j += 1
+    perm = _radix_argsort_positive(keys)  # depth order -> compact index
+    ntx = (width + TILE - 1) // TILE
+    nty = (height + TILE - 1) // TILE
+    ntiles = ntx * nty
+    tr = np.empty((nv, 4), np.int32)  # tile ranges tx0, tx1, ty0, ty1 (compact order)
+    pair_start = np.zeros(nv + 1, np.int64)
+    for j in range(nv):
+        tx0 = np.int32(crec[j, R_X0]) // TILE
+        tx1 = np.int32(crec[j, R_X1]) // TILE
+        ty0 = np.int32(crec[j, R_Y0]) // TILE
+        ty1 = np.int32(crec[j, R_Y1]) // TILE
+        tr[j, 0] = tx0
+        tr[j, 1] = tx1
+        tr[j, 2] = ty0
+        tr[j, 3] = ty1
+        pair_start[j + 1] = (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
+    for j in range(nv):
+        pair_start[j + 1] += pair_start[j]
+    # rows of tiles: depth-ordered lists of the Gaussians touching each row (serial, O(sum of rows))
+    row_start = np.zeros(nty + 1, np.int64)
+    for j in range(nv):
+        for r in range(tr[j, 2], tr[j, 3] + 1):
+            row_start[r + 1] += 1
+    for r in range(nty):
+        row_start[r + 1] += row_start[r]
+    row_list = np.empty(row_start[nty], np.int32)
+    cursor = row_start[:nty].copy()
+    for s in range(nv):
+        j = perm[s]
+        for r in range(tr[j, 2], tr[j, 3] + 1):
+            row_list[cursor[r]] = j
+            cursor[r] += 1
+    # tiles: count per tile (parallel over rows), prefix sum, fill in depth order (parallel over rows)
+    tile_count = np.zeros(ntiles, np.int64)
+    for r in range(nty):
+        for q in range(row_start[r], row_start[r + 1]):
+            j = row_list[q]
+            for t in range(tr[j, 0], tr[j, 1] + 1):
+                tile_count[r * ntx + t] += 1
+    tile_start = np.zeros(ntiles + 1, np.int64)
+    for t in range(ntiles):
+        tile_start[t + 1] = tile_start[t] + tile_count[t]
+    npairs = tile_start[ntiles]
+    pk = np.empty((npairs, REC), np.float32)
+    pf = np.empty((npairs, C), np.float32)
+    pair_slot = np.empty(npairs, np.int64)
+    tile_cost = np.zeros(ntiles, np.float64)
+    counter = np.zeros(1, np.int64)
+    for _w in prange(nworkers):
+        while True:
+            r = _fetch_add(counter, np.int64(1))
+            if r >= nty:
+                break
+            _fill_row(r, row_start, row_list, tr, crec, cfeat, pair_start, tile_start, tile_count, pk, pf,
+                      pair_slot, tile_cost, ntx, width, height)
+    return vis, tile_start, pk, pf, pair_start, pair_slot, tile_cost
+
+
+@njit(cache=True, inline="always")
+def _fill_row(r, row_start, row_list, tr, crec, cfeat, pair_start, tile_start, tile_count, pk, pf, pair_slot,
+              tile_cost, ntx, width, height):
+    """Copy the Gaussians of tile row r into their tiles' pair slots (body of ``bin_tiles``)."""
+    C = pf.shape[1]
+    py0 = r * TILE
+    py1 = min(py0 + TILE, height) - 1
+    for t in range(ntx):
+        tile_count[r * ntx + t] = tile_start[r * ntx + t]
+    for q in range(row_start[r], row_start[r + 1]):
+        j = row_list[q]
+        tx0 = tr[j, 0]
+        nx = tr[j, 1] - tx0 + 1
+        gy0 = max(np.int64(crec[j, R_Y0]), py0)
+        gy1 = min(np.int64(crec[j, R_Y1]), py1)
+        bx0 = np.int64(crec[j, R_X0])
+        bx1 = np.int64(crec[j, R_X1])
+        base = pair_start[j] + (r - tr[j, 2]) * nx - tx0
+        for t in range(tx0, tr[j, 1] + 1):
+            tile = r * ntx + t
+            pos = tile_count[tile]
+            tile_count[tile] = pos + 1
+            for f in range(REC):
+                pk[pos, f] = crec[j, f]
+            for c in range(C):
+                pf[pos, c] = cfeat[j, c]
+            pair_slot[pos] = base + t
+            px0 = t * TILE
+            px1 = min(px0 + TILE, width) - 1
+            tile_cost[tile] += 0.8 * (min(bx1, px1) - max(bx0, px0) + 1) * (gy1 - gy0 + 1) + 8.0
+
+
+@njit(cache=True)
+def tile_order(cost):
+    """Tiles by decreasing estimated cost: workers pull them in this order (longest first), which keeps the
+    end of a parallel pass short."""
+    return np.argsort(-cost)
+
+
+@njit(cache=True, inline="always")
+def _row_span(mx, ca, cb, cc, qmax, dy, gx0, gx1):
+    """Chord mode: pixels x of the row at offset dy (= mean_y - y) where d^T conic d <= qmax, clipped to
+    [gx0, gx1]. Returns (x0, x1, G, E): G = exp(power) at x0, E = exp(power(x0 + 1) - power(x0))."""
+    bdy = cb * dy
+    disc = bdy * bdy - ca * (cc * dy * dy - qmax)
+    if disc < 0.0:
+        return np.int64(1), np.int64(0), 0.0, 0.0
+    hw = np.sqrt(disc) / ca + SPAN_MARGIN
+    xc = mx + bdy / ca
+    x0 = max(gx0, np.int64(np.ceil(xc - hw)))
+    x1 = min(gx1, np.int64(np.floor(xc + hw)))
+    dx = mx - x0
+    G = np.exp(-0.5 * ca * dx * dx - bdy * dx - 0.5 * cc * dy * dy)
+    E = np.exp(ca * dx - 0.5 * ca + bdy)
+    return x0, x1, G, E
+
+
+@njit(cache=True, inline="always")
+def _pair_start(mx, my, ca, cb, cc, gx0, gy0):
+    """Recurrence mode: at pixel (gx0, gy0) returns G = exp(power), the x-step factor
+    E = exp(power(x+1, y) - power(x, y)) and the y-step factor F = exp(power(x, y+1) - power(x, y))."""
+    dx = mx - gx0
+    dy = my - gy0
+    G = np.exp(-0.5 * ca * dx * dx - cb * dx * dy - 0.5 * cc * dy * dy)
+    E = np.exp(ca * dx - 0.5 * ca + cb * dy)
+    F = np.exp(cb * dx + cc * dy - 0.5 * cc)
+    return G, E, F
+
+
+@njit(cache=True, parallel=True)
+def raster_forward(pk, pf, tile_start, order, bg, width, height, out, tfinal, last, work_bwd, nworkers):
+    """Front-to-back compositing of the pairs (pk, pf) of ``bin_tiles``. Writes out [H,W,C] f32 (bg added
+    per channel), tfinal [H,W] f32, last [H,W] i64 (one past the pair index of the pixel's last contributor),
+    work_bwd [ntiles] f64 (evaluated pixels up to the tile's last contributor: backward cost estimate)."""
+    C = pf.shape[1]
+    uC = np.uint64(C)
+    ntx = (width + TILE - 1) // TILE
+    ntiles = order.shape[0]
+    NP = TILE * TILE
+    counter = np.zeros(1, np.int64)
+    for _w in prange(nworkers):
+        T = np.empty(NP, np.float64)  # running transmittance; 0 once the pixel has stopped
+        Tstop = np.empty(NP, np.float64)  # transmittance at the stop
+        acc = np.empty(NP * C, np.float64)  # pixel-major: acc[p * C + c]
+        lst = np.empty(NP, np.int64)
+        while True:
+            jt = _fetch_add(counter, np.int64(1))
+            if jt >= ntiles:
+                break
+            tile = order[jt]
+            ty = tile // ntx
+            tx = tile - ty * ntx
+            x0 = tx * TILE
+            y0 = ty * TILE
+            x1 = min(x0 + TILE, width) - 1
+            y1 = min(y0 + TILE, height) - 1
+            npix = (x1 - x0 + 1) * (y1 - y0 + 1)
+            k0 = tile_start[tile]
+            T[:] = 1.0
+            acc[:] = 0.0
+            lst[:] = k0
+            ndone = 0
+            work = 0.0
+            work_last = 0.0
+            for k in range(k0, tile_start[tile + 1]):
+                gx0 = max(np.int64(pk[k, R_X0]), x0)
+                gx1 = min(np.int64(pk[k, R_X1]), x1)
+                gy0 = max(np.int64(pk[k, R_Y0]), y0)
+                gy1 = min(np.int64(pk[k, R_Y1]), y1)
+                mx = np.float64(pk[k, R_MX])
+                my = np.float64(pk[k, R_MY])
+                ca = np.float64(pk[k, R_CA])
+                cb = np.float64(pk[k, R_CB])
+                cc = np.float64(pk[k, R_CC])
+                o = np.float64(pk[k, R_OP])
+                qmax = np.float64(pk[k, R_QMAX])
+                ea = np.float64(pk[k, R_EA])
+                eb = np.float64(pk[k, R_EB])
+                ec = np.float64(pk[k, R_EC])
+                chord = pk[k, R_CHORD] != 0.0
+                f0 = np.float64(pf[k, 0])
+                f1 = np.float64(pf[k, 1])
+                f2 = np.float64(pf[k, 2])
+                f3 = np.float64(pf[k, 3])
+                if chord:
+                    Grow, Erow, Fy = 0.0, 0.0, 0.0
+                else:
+                    Grow, Erow, Fy = _pair_start(mx, my, ca, cb, cc, gx0, gy0)
+                hit = False
+                for y in range(gy0, gy1 + 1):
+                    if chord:
+                        sx0, sx1, G, E = _row_span(mx, ca, cb, cc, qmax, my - y, gx0, gx1)
+                    else:
+                        sx0, sx1, G, E = gx0, gx1, Grow, Erow
+                        Grow *= Fy
+                        Fy *= ec
+                        Erow *= eb
+                    work += max(0, sx1 - sx0 + 1)
+                    prow = (y - y0) * TILE - x0
+                    for x in range(sx0, sx1 + 1):
+                        g = G
+                        G *= E
+                        E *= ea
+                        p = np.uint64(prow + x)
+                        tp = T[p]
+                        alpha = min(ALPHA_MAX, o * g)
+                        alpha = alpha if alpha >= ALPHA_MIN else 0.0
+                        nt = tp * (1.0 - alpha)
+                        if nt < T_MIN and tp != 0.0:
+                            Tstop[p] = tp
+                            T[p] = 0.0
+                            ndone += 1
+                            continue
+                        w = alpha * tp
+                        q = p * uC
+                        acc[q] += f0 * w
+                        acc[q + np.uint64(1)] += f1 * w
+                        acc[q + np.uint64(2)] += f2 * w
+                        acc[q + np.uint64(3)] += f3 * w
+                        for c in range(4, C):
+                            acc[q + np.uint64(c)] += pf[k, c] * w
+                        T[p] = nt
+                        lst[p] = max(lst[p], (k + 1) * (w > 0.0))
+                        hit |= w > 0.0
+                if hit:
+                    work_last = work
+                if ndone == npix:
+                    break
+            work_bwd[tile] = work_last
+            for y in range(y0, y1 + 1):
+                for x in range(x0, x1 + 1):
+                    p = (y - y0) * TILE + (x - x0)
+                    tp = T[p]
+                    if tp == 0.0:
+                        tp = Tstop[p]
+                    for c in range(C):
+                        out[y, x, c] = acc[p * C + c] + tp * bg[c]
+                    tfinal[y, x] = tp
+                    last[y, x] = lst[p]
+
+
+@njit(cache=True, parallel=True)
+def raster_backward(pk, pf, pair_slot, tile_start, order, bg, width, height, g_out, g_alpha, tfinal, last, pg,
+                    nworkers):
+    """Back-to-front gradients. g_out [H,W,C] f32 = dL/dout, g_alpha [H,W] f32 = dL/d(accumulated alpha).
+    Writes every row of pg [npairs, 6+C] f32: for pair k, at row pair_slot[k], the sums over its pixels of
+    dL/d(mean_x, mean_y, conic_a, conic_b, conic_c, opacity, feat...)."""
+    C = pf.shape[1]
+    uC = np.uint64(C)
+    D = pg.shape[1]
+    ntx = (width + TILE - 1) // TILE
+    ntiles = order.shape[0]
+    NP = TILE * TILE
+    counter = np.zeros(1, np.int64)
+    for _w in prange(nworkers):
+        T = np.empty(NP, np.float64)
+        Rr = np.empty(NP, np.float64)
+        gp = np.zeros(NP * C, np.float64)  # pixel-major dL/dout of the tile
+        lst = np.zeros(NP, np.int64)
+        gf = np.empty(C, np.float64)
+        while True:
+            jt = _fetch_add(counter, np.int64(1))
+            if jt >= ntiles:
+                break
+            tile = order[jt]
+            ty = tile // ntx
+            tx = tile - ty * ntx
+            x0 = tx * TILE
+            y0 = ty * TILE
+            x1 = min(x0 + TILE, width) - 1
+            y1 = min(y0 + TILE, height) - 1
+            k0 = tile_start[tile]
+            k1 = tile_start[tile + 1]
+            kmax = k0
+            for y in range(y0, y1 + 1):
+                for x in range(x0, x1 + 1):
+                    p = (y - y0) * TILE + (x - x0)
+                    tf = np.float64(tfinal[y, x])
+                    T[p] = tf
+                    bgg = 0.0
+                    for c in range(C):
+                        gv = np.float64(g_out[y, x, c])
+                        gp[p * C + c] = gv
+                        bgg += bg[c] * gv
+                    Rr[p] = tf * (bgg - g_alpha[y, x])
+                    lst[p] = last[y, x]
+                    if last[y, x] > kmax:
+                        kmax = last[y, x]
+            for k in range(kmax, k1):
+                sl = pair_slot[k]
+                for d in range(D):
+                    pg[sl, d] = 0.0
+            for k in range(kmax - 1, k0 - 1, -1):
+                gx0 = max(np.int64(pk[k, R_X0]), x0)
+                gx1 = min(np.int64(pk[k, R_X1]), x1)
+                gy0 = max(np.int64(pk[k, R_Y0]), y0)
+                gy1 = min(np.int64(pk[k, R_Y1]), y1)
+                mx = np.float64(pk[k, R_MX])
+                my = np.float64(pk[k, R_MY])
+                ca = np.float64(pk[k, R_CA])
+                cb = np.float64(pk[k, R_CB])
+                cc = np.float64(pk[k, R_CC])
+                o = np.float64(pk[k, R_OP])
+                qmax = np.float64(pk[k, R_QMAX])
+                ea = np.float64(pk[k, R_EA])
+                eb = np.float64(pk[k, R_EB])
+                ec = np.float64(pk[k, R_EC])
+                chord = pk[k, R_CHORD] != 0.0
+                f0 = np.float64(pf[k, 0])
+                f1 = np.float64(pf[k, 1])
+                f2 = np.float64(pf[k, 2])
+                f3 = np.float64(pf[k, 3])
+                if chord:
+                    Grow, Erow, Fy = 0.0, 0.0, 0.0
+                else:
+                    Grow, Erow, Fy = _pair_start(mx, my, ca, cb, cc, gx0, gy0)
+                # sums over the pair's pixels of dpow = dL/dpower times 1, dx, dx^2, dy, dx dy, dy^2 (dx, dy:
+                # mean minus pixel); the conic and mean gradients are linear in them
+                s1t = 0.0
+                s2t = 0.0
+                sdt = 0.0
+                sdyt = 0.0
+                sdy2t = 0.0
+                go = 0.0
+                gf0 = 0.0
+                gf1 = 0.0
+                gf2 = 0.0
+                gf3 = 0.0
+                for c in range(4, C):
+                    gf[c] = 0.0
+                for y in range(gy0, gy1 + 1):
+                    dy = my - y
+                    if chord:
+                        sx0, sx1, G, E = _row_span(mx, ca, cb, cc, qmax, dy, gx0, gx1)
+                    else:
+                        sx0, sx1, G, E = gx0, gx1, Grow, Erow
+                        Grow *= Fy
+                        Fy *= ec
+                        Erow *= eb
+                    prow = (y - y0) * TILE - x0
+                    s0 = 0.0
+                    s1 = 0.0
+                    s2 = 0.0
+                    for x in range(sx0, sx1 + 1):
+                        g = G
+                        G *= E
+                        E *= ea
+                        p = np.uint64(prow + x)
+                        if k >= lst[p]:
+                            continue
+                        ga = o * g
+                        alpha = min(ALPHA_MAX, ga)
+                        if alpha < ALPHA_MIN:
+                            continue
+                        iom = 1.0 / (1.0 - alpha)
+                        ti = T[p] * iom
+                        w = alpha * ti
+                        q = p * uC
+                        g0 = gp[q]
+                        g1 = gp[q + np.uint64(1)]
+                        g2 = gp[q + np.uint64(2)]
+                        g3 = gp[q + np.uint64(3)]
+                        fg = f0 * g0 + f1 * g1 + f2 * g2 + f3 * g3
+                        gf0 += w * g0
+                        gf1 += w * g1
+                        gf2 += w * g2
+                        gf3 += w * g3
+                        for c in range(4, C):
+                            gv = gp[q + np.uint64(c)]
+                            fg += pf[k, c] * gv
+                            gf[c] += w * gv
+                        dlda = ti * fg - Rr[p] * iom
+                        Rr[p] += fg * w
+                        T[p] = ti
+                        if ga <= ALPHA_MAX:
+                            dx = mx - x
+                            go += g * dlda
+                            dpow = ga * dlda
+                            s0 += dpow
+                            t1 = dpow * dx
+                            s1 += t1
+                            s2 += t1 * dx
+                    s1t += s1
+                    s2t += s2
+                    sdt += s0 * dy
+                    sdyt += s1 * dy
+                    sdy2t += s0 * dy * dy
+                # power = -0.5 (a dx^2 + c dy^2) - b dx dy: d/dmean_x = -(a dx + b dy), d/dmean_y = -(c dy + b dx)
+                gmx = -(ca * s1t + cb * sdt)
+                gmy = -(cc * sdt + cb * s1t)
+                gca = -0.5 * s2t
+                gcc = -0.5 * sdy2t
+                gcb = -sdyt
+                sl = pair_slot[k]
+                pg[sl, 0] = gmx
+                pg[sl, 1] = gmy
+                pg[sl, 2] = gca
+                pg[sl, 3] = gcb
+                pg[sl, 4] = gcc
+                pg[sl, 5] = go
+                pg[sl, 6] = gf0
+                pg[sl, 7] = gf1
+                pg[sl, 8] = gf2
+                pg[sl, 9] = gf3
+                for c in range(4, C):
+                    pg[sl, 6 + c] = gf[c]
+
+
+@njit(cache=True, parallel=True)
+def project_backward(means, quats, scales, Rcw, tcw, fx, fy, cx, cy, width, height, eps2d, vis, pair_start,
+                     pg, g_means, g_quats, g_scales, g_opac, g_colors, g_extras, g_m2d, g_pose_chunks, nworkers):
+    """Sum each visible Gaussian's per-pair gradients (its rows of pg), then apply the chain rule to the
+    inputs. Writes the rows ``vis`` of g_* (the caller zeroes the others); g_pose_chunks [nchunks, 12]
+    receives partial sums of dL/dRcw (row-major, 9) and dL/dtcw (3)."""
+    nv = vis.shape[0]
+    D = pg.shape[1]
+    K = g_extras.shape[1]
+    nchunks = g_pose_chunks.shape[0]
+    tanx = 0.5 * width / fx
+    tany = 0.5 * height / fy
+    limxp = (width - cx) / fx + 0.3 * tanx
+    limxn = cx / fx + 0.3 * tanx
+    limyp = (height - cy) / fy + 0.3 * tany
+    limyn = cy / fy + 0.3 * tany
+    csize = (nv + nchunks - 1) // nchunks
+    counter = np.zeros(1, np.int64)
+    for _w in prange(nworkers):
+        gs = np.empty(D, np.float64)
+        P = np.zeros(12, np.float64)
+        while True:
+            ch = _fetch_add(counter, np.int64(1))
+            if ch >= nchunks:
+                break
+            P[:] = 0.0
+            for j in range(ch * csize, min(nv, (ch + 1) * csize)):
+                i = vis[j]
+                gs[:] = 0.0
+                for q in range(pair_start[j], pair_start[j + 1]):
+                    for d in range(D):
+                        gs[d] += pg[q, d]
+                gmx = gs[0]
+                gmy = gs[1]
+                gA = gs[2]
+                gB = gs[3]
+                gC = gs[4]
+                g_opac[i] = gs[5]
+                g_colors[i, 0] = gs[6]
+                g_colors[i, 1] = gs[7]
+                g_colors[i, 2] = gs[8]
+                gz = gs[9]
+                for c in range(K):
+                    g_extras[i, c] = gs[10 + c]
+                g_m2d[i, 0] = gmx
+                g_m2d[i, 1] = gmy
+                # ---- recompute the forward quantities ----
+                pwx = np.float64(means[i, 0])
+                pwy = np.float64(means[i, 1])
+                pwz = np.float64(means[i, 2])
+                x = Rcw[0, 0] * pwx + Rcw[0, 1] * pwy + Rcw[0, 2] * pwz + tcw[0]
+                y = Rcw[1, 0] * pwx + Rcw[1, 1] * pwy + Rcw[1, 2] * pwz + tcw[1]
+                z = Rcw[2, 0] * pwx + Rcw[2, 1] * pwy + Rcw[2, 2] * pwz + tcw[2]
+                qw0 = np.float64(quats[i, 0])
+                qx0 = np.float64(quats[i, 1])
+                qy0 = np.float64(quats[i, 2])
+                qz0 = np.float64(quats[i, 3])
+                qn_raw = np.sqrt(qw0 * qw0 + qx0 * qx0 + qy0 * qy0 + qz0 * qz0)
+                qn = max(qn_raw, 1e-12)
+                qw = qw0 / qn
+                qx = qx0 / qn
+                qy = qy0 / qn
+                qz = qz0 / qn
+                r00 = 1.0 - 2.0 * (qy * qy + qz * qz)
+                r01 = 2.0 * (qx * qy - qw * qz)
+                r02 = 2.0 * (qx * qz + qw * qy)
+                r10 = 2.0 * (qx * qy + qw * qz)
+                r11 = 1.0 - 2.0 * (qx * qx + qz * qz)
+                r12 = 2.0 * (qy * qz - qw * qx)
+                r20 = 2.0 * (qx * qz - qw * qy)
+                r21 = 2.0 * (qy * qz + qw * qx)
+                r22 = 1.0 - 2.0 * (qx * qx + qy * qy)
+                s0 = np.float64(scales[i, 0])
+                s1 = np.float64(scales[i, 1])
+                s2 = np.float64(scales[i, 2])
+                m00 = r00 * s0
+                m01 = r01 * s1
+                m02 = r02 * s2
+                m10 = r10 * s0
+                m11 = r11 * s1
+                m12 = r12 * s2
+                m20 = r20 * s0
+                m21 = r21 * s1
+                m22 = r22 * s2
+                S00 = m00 * m00 + m01 * m01 + m02 * m02
+                S01 = m00 * m10 + m01 * m11 + m02 * m12
+                S02 = m00 * m20 + m01 * m21 + m02 * m22
+                S11 = m10 * m10 + m11 * m11 + m12 * m12
+                S12 = m10 * m20 + m11 * m21 + m12 * m22
+                S22 = m20 * m20 + m21 * m21 + m22 * m22
+                rz = 1.0 / z
+                rx = x * rz
+                ry = y * rz
+                clx = rx < -limxn or rx > limxp
+                cly = ry < -limyn or ry > limyp
+                tx = z * min(limxp, max(-limxn, rx))
+                ty = z * min(limyp, max(-limyn, ry))
+                j00 = fx * rz
+                j02 = -fx * tx * rz * rz
+                j11 = fy * rz
+                j12 = -fy * ty * rz * rz
+                a00 = j00 * Rcw[0, 0] + j02 * Rcw[2, 0]
+                a01 = j00 * Rcw[0, 1] + j02 * Rcw[2, 1]
+                a02 = j00 * Rcw[0, 2] + j02 * Rcw[2, 2]
+                a10 = j11 * Rcw[1, 0] + j12 * Rcw[2, 0]
+                a11 = j11 * Rcw[1, 1] + j12 * Rcw[2, 1]
+                a12 = j11 * Rcw[1, 2] + j12 * Rcw[2, 2]
+                u0 = S00 * a00 + S01 * a01 + S02 * a02
+                u1 = S01 * a00 + S11 * a01 + S12 * a02
+                u2 = S02 * a00 + S12 * a01 + S22 * a02
+                v0 = S00 * a10 + S01 * a11 + S02 * a12
+                v1 = S01 * a10 + S11 * a11 + S12 * a12
+                v2 = S02 * a10 + S12 * a11 + S22 * a12
+                ca = a00 * u0 + a01 * u1 + a02 * u2 + eps2d
+                cb = a10 * u0 + a11 * u1 + a12 * u2
+                cc = a10 * v0 + a11 * v1 + a12 * v2 + eps2d
+                idet = 1.0 / (ca * cc - cb * cb)
+                qa = cc * idet
+                qb = -cb * idet
+                qc = ca * idet
+                # ---- conic -> Sigma2:  dL/dSigma2 = -Q G Q, G = [[gA, gB/2], [gB/2, gC]] ----
+                hb = 0.5 * gB
+                t00 = gA * qa + hb * qb
+                t01 = gA * qb + hb * qc
+                t10 = hb * qa + gC * qb
+                t11 = hb * qb + gC * qc
+                G00 = -(qa * t00 + qb * t10)
+                G01 = -(qa * t01 + qb * t11)
+                G11 = -(qb * t01 + qc * t11)
+                # ---- Sigma2 = T2 Sigma T2^T:  dL/dT2 = 2 G T2 Sigma,  dL/dSigma = T2^T G T2 ----
+                # T2 Sigma rows: (u0,u1,u2) = row0, (v0,v1,v2) = row1
+                gT00 = 2.0 * (G00 * u0 + G01 * v0)
+                gT01 = 2.0 * (G00 * u1 + G01 * v1)
+                gT02 = 2.0 * (G00 * u2 + G01 * v2)
+                gT10 = 2.0 * (G01 * u0 + G11 * v0)
+                gT11 = 2.0 * (G01 * u1 + G11 * v1)
+                gT12 = 2.0 * (G01 * u2 + G11 * v2)
+                # G T2 (2x3)
+                w00 = G00 * a00 + G01 * a10
+                w01 = G00 * a01 + G01 * a11
+                w02 = G00 * a02 + G01 * a12
+                w10 = G01 * a00 + G11 * a10
+                w11 = G01 * a01 + G11 * a11
+                w12 = G01 * a02 + G11 * a12
+                gS00 = a00 * w00 + a10 * w10
+                gS01 = a00 * w01 + a10 * w11
+                gS02 = a00 * w02 + a10 * w12
+                gS11 = a01 * w01 + a11 * w11
+                gS12 = a01 * w02 + a11 * w12
+                gS22 = a02 * w02 + a12 * w12
+                # ---- Sigma = M M^T:  dL/dM = 2 gS M ----
+                gM00 = 2.0 * (gS00 * m00 + gS01 * m10 + gS02 * m20)
+                gM01 = 2.0 * (gS00 * m01 + gS01 * m11 + gS02 * m21)
+                gM02 = 2.0 * (gS00 * m02 + gS01 * m12 + gS02 * m22)
+                gM10 = 2.0 * (gS01 * m00 + gS11 * m10 + gS12 * m20)
+                gM11 = 2.0 * (gS01 * m01 + gS11 * m11 + gS12 * m21)
+                gM12 = 2.0 * (gS01 * m02 + gS11 * m12 + gS12 * m22)
+                gM20 = 2.0 * (gS02 * m00 + gS12 * m10 + gS22 * m20)
+                gM21 = 2.0 * (gS02 * m01 + gS12 * m11 + gS22 * m21)
+                gM22 = 2.0 * (gS02 * m02 + gS12 * m12 + gS22 * m22)
+                g_scales[i, 0] = gM00 * r00 + gM10 * r10 + gM20 * r20
+                g_scales[i, 1] = gM01 * r01 + gM11 * r11 + gM21 * r21
+                g_scales[i, 2] = gM02 * r02 + gM12 * r12 + gM22 * r22
+                G_00 = gM00 * s0
+                G_01 = gM01 * s1
+                G_02 = gM02 * s2
+                G_10 = gM10 * s0
+                G_11 = gM11 * s1
+                G_12 = gM12 * s2
+                G_20 = gM20 * s0
+                G_21 = gM21 * s1
+                G_22 = gM22 * s2
+                gqw = 2.0 * (-qz * G_01 + qy * G_02 + qz * G_10 - qx * G_12 - qy * G_20 + qx * G_21)
+                gqx = 2.0 * (qy * G_01 + qz * G_02 + qy * G_10 - 2.0 * qx * G_11 - qw * G_12 + qz * G_20
+                             + qw * G_21 - 2.0 * qx * G_22)
+                gqy = 2.0 * (-2.0 * qy * G_00 + qx * G_01 + qw * G_02 + qx * G_10 + qz * G_12 - qw * G_20
+                             + qz * G_21 - 2.0 * qy * G_22)
+                gqz = 2.0 * (-2.0 * qz * G_00 - qw * G_01 + qx * G_02 + qw * G_10 - 2.0 * qz * G_11 + qy * G_12
+                             + qx * G_20 + qy * G_21)
+                if qn_raw >= 1e-12:
+                    dot = qw * gqw + qx * gqx + qy * gqy + qz * gqz
+                    g_quats[i, 0] = (gqw - qw * dot) / qn
+                    g_quats[i, 1] = (gqx - qx * dot) / qn
+                    g_quats[i, 2] = (gqy - qy * dot) / qn
+                    g_quats[i, 3] = (gqz - qz * dot) / qn
+                else:
+                    g_quats[i, 0] = 0.0
+                    g_quats[i, 1] = 0.0
+                    g_quats[i, 2] = 0.0
+                    g_quats[i, 3] = 0.0
+                # ---- T2 = J Rcw:  dL/dJ = gT Rcw^T,  dL/dRcw += J^T gT ----
+                gJ00 = gT00 * Rcw[0, 0] + gT01 * Rcw[0, 1] + gT02 * Rcw[0, 2]
+                gJ02 = gT00 * Rcw[2, 0] + gT01 * Rcw[2, 1] + gT02 * Rcw[2, 2]
+                gJ11 = gT10 * Rcw[1, 0] + gT11 * Rcw[1, 1] + gT12 * Rcw[1, 2]
+                gJ12 = gT10 * Rcw[2, 0] + gT11 * Rcw[2, 1] + gT12 * Rcw[2, 2]
+                # ---- J(x, y, z) and the pixel centre and depth ----
+                rz2 = rz * rz
+                rz3 = rz2 * rz
+                gx = fx * rz * gmx
+                gy = fy * rz * gmy
+                gzz = gz - fx * x * rz2 * gmx - fy * y * rz2 * gmy
+                gzz += -fx * rz2 * gJ00 - fy * rz2 * gJ11
+                if clx:
+                    gzz += fx * tx * rz3 * gJ02
+                else:
+                    gx += -fx * rz2 * gJ02
+                    gzz += 2.0 * fx * x * rz3 * gJ02
+                if cly:
+                    gzz += fy * ty * rz3 * gJ12
+                else:
+                    gy += -fy * rz2 * gJ12
+                    gzz += 2.0 * fy * y * rz3 * gJ12
+                g_means[i, 0] = Rcw[0, 0] * gx + Rcw[1, 0] * gy + Rcw[2, 0] * gzz
+                g_means[i, 1] = Rcw[0, 1] * gx + Rcw[1, 1] * gy + Rcw[2, 1] * gzz
+                g_means[i, 2] = Rcw[0, 2] * gx + Rcw[1, 2] * gy + Rcw[2, 2] * gzz
+                # dL/dRcw: from p = Rcw pw + t  and from T2 = J Rcw
+                P[0] += gx * pwx + j00 * gT00
+                P[1] += gx * pwy + j00 * gT01
+                P[2] += gx * pwz + j00 * gT02
+                P[3] += gy * pwx + j11 * gT10
+                P[4] += gy * pwy + j11 * gT11
+                P[5] += gy * pwz + j11 * gT12
+                P[6] += gzz * pwx + j02 * gT00 + j12 * gT10
+                P[7] += gzz * pwy + j02 * gT01 + j12 * gT11
+                P[8] += gzz * pwz + j02 * gT02 + j12 * gT12
+                P[9] += gx
+                P[10] += gy
+                P[11] += gzz
+            for q in range(12):
+                g_pose_chunks[ch, q] = P[q]
