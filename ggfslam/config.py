@@ -156,6 +156,8 @@ class TrackingConfig(_Section):
     """Insert a keyframe after moving this far (m) from the reference keyframe."""
     keyframe_rotation_deg: float = 15.0
     """Insert a keyframe after turning this much (degrees) from the reference keyframe."""
+    max_new_landmarks: int = 500
+    """At most this many new map points per keyframe (the closest unmatched keypoints with depth)."""
     local_map_keyframes: int = 12
     """How many covisible keyframes supply map points to track against."""
     dense_fallback: bool = True

@@ -10,7 +10,7 @@ from ggfslam.geometry.se3 import invert
 
 # a loop's own covariance can be 1-2 mm: floor it so a slightly optimistic loop cannot tear the graph
 _LOOP_FLOOR_ROT, _LOOP_FLOOR_TRANS = np.radians(0.5), 0.01
-_ODOM_ROT, _ODOM_TRANS = 0.01, 0.02  # consecutive-keyframe edges (rad, m)
+_ODOM_ROT, _ODOM_TRANS = 0.003, 0.005  # consecutive-keyframe edges (rad, m): BA-refined, so tight
 _COVIS_MIN_SHARED = 100  # covisibility edges only between keyframes sharing this many landmarks
 
 

@@ -211,6 +211,9 @@ class OrbTracker:
             for l, k in zip(lm, kp):
                 self.map.add_observation(int(l), kf, int(k))
             fresh = np.nonzero((kf.landmark_ids < 0) & F.has_depth)[0]
+            if len(fresh) > self.cfg.max_new_landmarks:
+                # the closest points first (RGB-D ORB-SLAM): their depth is the most precise
+                fresh = fresh[np.argsort(F.depth[fresh], kind="stable")[: self.cfg.max_new_landmarks]]
             if len(fresh):
                 Xw = F.points_cam[fresh] @ T[:3, :3].T + T[:3, 3]
                 self.map.add_landmarks(Xw, F.descriptors[fresh], kf, fresh)
