@@ -113,3 +113,15 @@ def test_blank_frames_are_lost_then_relocalized():
     keep = ~lost
     m = trajectory_metrics(stamps[keep], poses[keep], seq.timestamps, seq.poses)
     assert m["ate_rmse_cm"] < 1.0, m
+
+
+@pytest.mark.slow
+def test_real_tum_cabinet_keyframes_all_tracked(data_root):
+    """Real Kinect data, 58 wide-baseline keyframes of a plain cabinet: a regression guard (target is 8 cm)."""
+    from ggfslam.data.tum import TUMDataset
+
+    ds = TUMDataset(data_root / "tum_fr3_cabinet_kf")
+    tracker, results = _track(list(ds), ds.camera, TrackingConfig())
+    stamps, poses, lost = tracker.trajectory()
+    assert not lost.any()
+    assert trajectory_metrics(stamps, poses, ds.timestamps, ds.gt_poses)["ate_rmse_cm"] < 30.0
