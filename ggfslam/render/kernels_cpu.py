@@ -12,18 +12,22 @@ Pipeline (one render)
 2. ``bin_tiles``: compaction, radix sort of the visible Gaussians by view depth, per-tile lists (16x16
    tiles, depth order inside a tile). Every (tile, Gaussian) pair gets a *copy* of the Gaussian's record
    and features, stored tile after tile: the rasterizers then read memory sequentially instead of
-   chasing one cache miss per pair (that alone halved the forward pass). Also: per-Gaussian lists of
-   its pairs (to sum gradients without atomics) and per-tile cost estimates.
-3. ``split_groups``: a longest-processing-time split of the tiles into one group per thread (numba's
-   OpenMP layer schedules ``prange`` statically; without it the busier half of the image decides).
-4. ``raster_forward`` (parallel over tile groups): front-to-back compositing. Each Gaussian visits only
+   chasing one cache miss per pair (that alone halved the forward pass). Also: each pair's slot in a
+   Gaussian-major order (the backward writes per-pair gradients there, so summing them needs no atomics
+   and no random reads) and per-tile cost estimates.
+3. Scheduling: every parallel kernel runs one ``prange`` iteration per worker thread, and the workers pull
+   work items (tiles by decreasing estimated cost, rows, or chunks of Gaussians) from an atomic counter
+   (``_fetch_add``). numba's OpenMP layer splits a ``prange`` statically; with another busy process on
+   the two cores, static halves made a 2-thread render 3.5x slower than a 1-thread one. Results do not
+   depend on the schedule (a tile is always handled by one worker; sums run in a fixed order).
+4. ``raster_forward`` (parallel over tiles): front-to-back compositing. Each Gaussian visits only
    the pixels of its own box inside the tile; a pixel stops when its transmittance would fall below
    1e-4 (that Gaussian is not blended: the 3DGS rule); a tile stops when all its pixels have stopped.
    ``exp(power)`` comes from multiplicative recurrences (power is quadratic in x and y): libm ``exp``
    runs three times per (Gaussian, tile) pair, or twice per row in "chord" mode for very elongated,
    diagonal ellipses whose box corners would underflow. Channels ``[r, g, b, z, extras...]``; the
    background goes to the colour channels only.
-5. ``raster_backward`` (parallel over tile groups): back to front over each pixel's contributors, with
+5. ``raster_backward`` (parallel over tiles): back to front over each pixel's contributors, with
    the same recurrences (bit-identical alphas), transmittance recovered by division by ``1 - alpha``
    (alpha <= 0.99). Per pixel a single scalar ``R = dL/dC . (what lies behind) + T_final (bg . dL/dC
    - dL/dalpha_acc)`` carries everything behind. Per-pair gradient sums are written once per pair.
@@ -38,7 +42,7 @@ pixel's contributors.
 
 numba caching: ``cache=True``; unless ``NUMBA_CACHE_DIR`` is set, the cache goes to
 ``~/.cache/ggfslam/numba`` (outside the repository). Threads: ``numba.set_num_threads`` is respected
-(the caller's setting decides the number of tile groups).
+(the caller's setting decides the number of workers).
 """
 from __future__ import annotations
 
@@ -46,6 +50,12 @@ import os
 
 if not os.environ.get("NUMBA_CACHE_DIR"):
     os.environ["NUMBA_CACHE_DIR"] = os.path.join(os.path.expanduser("~"), ".cache", "ggfslam", "numba")
+# numba's OpenMP layer loads the system libgomp at its first parallel call and reads this then. libgomp's
+# default lets idle workers spin ~300k iterations; when another process keeps one of the two cores busy,
+# that spinning starves the working thread: a 320x240 render + backward took 228 ms instead of 97 ms
+# (GOMP_SPINCOUNT=1000..10000), worse than one thread (128 ms). A short spin costs little on an idle
+# machine. An explicit user setting wins. (torch bundles its own libgomp, configured when torch loads.)
+os.environ.setdefault("GOMP_SPINCOUNT", "10000")
 
 import numba  # noqa: E402
 import numpy as np  # noqa: E402
@@ -340,26 +350,35 @@ def bin_tiles(valid, rec, colors, extras, width, height, nworkers):
         pair_start[j + 1] = (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
     for j in range(nv):
         pair_start[j + 1] += pair_start[j]
+    # depth-sorted copies: the row fills below then read memory in increasing order
+    srec = np.empty((nv, REC), np.float32)
+    sfeat = np.empty((nv, C), np.float32)
+    str_ = np.empty((nv, 4), np.int32)
+    sbase = np.empty(nv, np.int64)
+    for s in range(nv):
+        j = perm[s]
+        for f in range(REC):
+            srec[s, f] = crec[j, f]
+        for c in range(C):
+            sfeat[s, c] = cfeat[j, c]
+        for f in range(4):
+            str_[s, f] = tr[j, f]
+        sbase[s] = pair_start[j]
     # rows of tiles: depth-ordered lists of the Gaussians touching each row (serial, O(sum of rows))
     row_start = np.zeros(nty + 1, np.int64)
-    for j in range(nv):
-        for r in range(tr[j, 2], tr[j, 3] + 1):
+    for s in range(nv):
+        for r in range(str_[s, 2], str_[s, 3] + 1):
             row_start[r + 1] += 1
     for r in range(nty):
         row_start[r + 1] += row_start[r]
     row_list = np.empty(row_start[nty], np.int32)
     cursor = row_start[:nty].copy()
-    for s in range(nv):
-        j = perm[s]
-        for r in range(tr[j, 2], tr[j, 3] + 1):
-            row_list[cursor[r]] = j
-            cursor[r] += 1
-    # tiles: count per tile (parallel over rows), prefix sum, fill in depth order (parallel over rows)
     tile_count = np.zeros(ntiles, np.int64)
-    for r in range(nty):
-        for q in range(row_start[r], row_start[r + 1]):
-            j = row_list[q]
-            for t in range(tr[j, 0], tr[j, 1] + 1):
+    for s in range(nv):
+        for r in range(str_[s, 2], str_[s, 3] + 1):
+            row_list[cursor[r]] = s
+            cursor[r] += 1
+            for t in range(str_[s, 0], str_[s, 1] + 1):
                 tile_count[r * ntx + t] += 1
     tile_start = np.zeros(ntiles + 1, np.int64)
     for t in range(ntiles):
@@ -375,7 +394,7 @@ def bin_tiles(valid, rec, colors, extras, width, height, nworkers):
             r = _fetch_add(counter, np.int64(1))
             if r >= nty:
                 break
-            _fill_row(r, row_start, row_list, tr, crec, cfeat, pair_start, tile_start, tile_count, pk, pf,
+            _fill_row(r, row_start, row_list, str_, srec, sfeat, sbase, tile_start, tile_count, pk, pf,
                       pair_slot, tile_cost, ntx, width, height)
     return vis, tile_start, pk, pf, pair_start, pair_slot, tile_cost
 
@@ -383,7 +402,9 @@ def bin_tiles(valid, rec, colors, extras, width, height, nworkers):
 @njit(cache=True, inline="always")
 def _fill_row(r, row_start, row_list, tr, crec, cfeat, pair_start, tile_start, tile_count, pk, pf, pair_slot,
               tile_cost, ntx, width, height):
-    """Copy the Gaussians of tile row r into their tiles' pair slots (body of ``bin_tiles``)."""
+    """Copy the Gaussians of tile row r into their tiles' pair slots (body of ``bin_tiles``). Here tr, crec,
+    cfeat and pair_start are in depth order and row_list holds depth ranks, so reads go forward in memory
+    (with index-ordered arrays the random reads made this loop 1.5-2x slower)."""
     C = pf.shape[1]
     py0 = r * TILE
     py1 = min(py0 + TILE, height) - 1
@@ -519,31 +540,56 @@ def raster_forward(pk, pf, tile_start, order, bg, width, height, out, tfinal, la
                         Erow *= eb
                     work += max(0, sx1 - sx0 + 1)
                     prow = (y - y0) * TILE - x0
-                    for x in range(sx0, sx1 + 1):
-                        g = G
-                        G *= E
-                        E *= ea
-                        p = np.uint64(prow + x)
-                        tp = T[p]
-                        alpha = min(ALPHA_MAX, o * g)
-                        alpha = alpha if alpha >= ALPHA_MIN else 0.0
-                        nt = tp * (1.0 - alpha)
-                        if nt < T_MIN and tp != 0.0:
-                            Tstop[p] = tp
-                            T[p] = 0.0
-                            ndone += 1
-                            continue
-                        w = alpha * tp
-                        q = p * uC
-                        acc[q] += f0 * w
-                        acc[q + np.uint64(1)] += f1 * w
-                        acc[q + np.uint64(2)] += f2 * w
-                        acc[q + np.uint64(3)] += f3 * w
-                        for c in range(4, C):
-                            acc[q + np.uint64(c)] += pf[k, c] * w
-                        T[p] = nt
-                        lst[p] = max(lst[p], (k + 1) * (w > 0.0))
-                        hit |= w > 0.0
+                    if C == 4:  # no extras: a lean copy of the loop
+                        for x in range(sx0, sx1 + 1):
+                            g = G
+                            G *= E
+                            E *= ea
+                            p = np.uint64(prow + x)
+                            tp = T[p]
+                            alpha = min(ALPHA_MAX, o * g)
+                            alpha = alpha if alpha >= ALPHA_MIN else 0.0
+                            nt = tp * (1.0 - alpha)
+                            if nt < T_MIN and tp != 0.0:
+                                Tstop[p] = tp
+                                T[p] = 0.0
+                                ndone += 1
+                                continue
+                            w = alpha * tp
+                            q = p * uC
+                            acc[q] += f0 * w
+                            acc[q + np.uint64(1)] += f1 * w
+                            acc[q + np.uint64(2)] += f2 * w
+                            acc[q + np.uint64(3)] += f3 * w
+                            T[p] = nt
+                            lst[p] = max(lst[p], (k + 1) * (w > 0.0))
+                            hit |= w > 0.0
+                    else:
+                        for x in range(sx0, sx1 + 1):
+                            g = G
+                            G *= E
+                            E *= ea
+                            p = np.uint64(prow + x)
+                            tp = T[p]
+                            alpha = min(ALPHA_MAX, o * g)
+                            alpha = alpha if alpha >= ALPHA_MIN else 0.0
+                            nt = tp * (1.0 - alpha)
+                            if nt < T_MIN and tp != 0.0:
+                                Tstop[p] = tp
+                                T[p] = 0.0
+                                ndone += 1
+                                continue
+                            w = alpha * tp
+                            q = p * uC
+                            acc[q] += f0 * w
+                            acc[q + np.uint64(1)] += f1 * w
+                            acc[q + np.uint64(2)] += f2 * w
+                            acc[q + np.uint64(3)] += f3 * w
+                            for c in range(4, C):
+                                acc[q + np.uint64(c)] += pf[k, c] * w
+                            T[p] = nt
+                            lst[p] = max(lst[p], (k + 1) * (w > 0.0))
+                            hit |= w > 0.0
                 if hit:
                     work_last = work
                 if ndone == npix:
@@ -643,7 +689,7 @@ def raster_backward(pk, pf, pair_slot, tile_start, order, bg, width, height, g_o
                 sdt = 0.0
                 sdyt = 0.0
                 sdy2t = 0.0
-                go = 0.0
+                s0t = 0.0
                 gf0 = 0.0
                 gf1 = 0.0
                 gf2 = 0.0
@@ -663,45 +709,81 @@ def raster_backward(pk, pf, pair_slot, tile_start, order, bg, width, height, g_o
                     s0 = 0.0
                     s1 = 0.0
                     s2 = 0.0
-                    for x in range(sx0, sx1 + 1):
-                        g = G
-                        G *= E
-                        E *= ea
-                        p = np.uint64(prow + x)
-                        if k >= lst[p]:
-                            continue
-                        ga = o * g
-                        alpha = min(ALPHA_MAX, ga)
-                        if alpha < ALPHA_MIN:
-                            continue
-                        iom = 1.0 / (1.0 - alpha)
-                        ti = T[p] * iom
-                        w = alpha * ti
-                        q = p * uC
-                        g0 = gp[q]
-                        g1 = gp[q + np.uint64(1)]
-                        g2 = gp[q + np.uint64(2)]
-                        g3 = gp[q + np.uint64(3)]
-                        fg = f0 * g0 + f1 * g1 + f2 * g2 + f3 * g3
-                        gf0 += w * g0
-                        gf1 += w * g1
-                        gf2 += w * g2
-                        gf3 += w * g3
-                        for c in range(4, C):
-                            gv = gp[q + np.uint64(c)]
-                            fg += pf[k, c] * gv
-                            gf[c] += w * gv
-                        dlda = ti * fg - Rr[p] * iom
-                        Rr[p] += fg * w
-                        T[p] = ti
-                        if ga <= ALPHA_MAX:
-                            dx = mx - x
-                            go += g * dlda
-                            dpow = ga * dlda
-                            s0 += dpow
-                            t1 = dpow * dx
-                            s1 += t1
-                            s2 += t1 * dx
+                    if C == 4:  # no extras: a lean copy of the loop (fewer live registers)
+                        for x in range(sx0, sx1 + 1):
+                            g = G
+                            G *= E
+                            E *= ea
+                            p = np.uint64(prow + x)
+                            if k >= lst[p]:
+                                continue
+                            ga = o * g
+                            alpha = min(ALPHA_MAX, ga)
+                            if alpha < ALPHA_MIN:
+                                continue
+                            iom = 1.0 / (1.0 - alpha)
+                            ti = T[p] * iom
+                            w = alpha * ti
+                            q = p * uC
+                            g0 = gp[q]
+                            g1 = gp[q + np.uint64(1)]
+                            g2 = gp[q + np.uint64(2)]
+                            g3 = gp[q + np.uint64(3)]
+                            fg = f0 * g0 + f1 * g1 + f2 * g2 + f3 * g3
+                            gf0 += w * g0
+                            gf1 += w * g1
+                            gf2 += w * g2
+                            gf3 += w * g3
+                            dlda = ti * fg - Rr[p] * iom
+                            Rr[p] += fg * w
+                            T[p] = ti
+                            if ga <= ALPHA_MAX:
+                                dx = mx - x
+                                dpow = ga * dlda
+                                s0 += dpow
+                                t1 = dpow * dx
+                                s1 += t1
+                                s2 += t1 * dx
+                    else:
+                        for x in range(sx0, sx1 + 1):
+                            g = G
+                            G *= E
+                            E *= ea
+                            p = np.uint64(prow + x)
+                            if k >= lst[p]:
+                                continue
+                            ga = o * g
+                            alpha = min(ALPHA_MAX, ga)
+                            if alpha < ALPHA_MIN:
+                                continue
+                            iom = 1.0 / (1.0 - alpha)
+                            ti = T[p] * iom
+                            w = alpha * ti
+                            q = p * uC
+                            g0 = gp[q]
+                            g1 = gp[q + np.uint64(1)]
+                            g2 = gp[q + np.uint64(2)]
+                            g3 = gp[q + np.uint64(3)]
+                            fg = f0 * g0 + f1 * g1 + f2 * g2 + f3 * g3
+                            gf0 += w * g0
+                            gf1 += w * g1
+                            gf2 += w * g2
+                            gf3 += w * g3
+                            for c in range(4, C):
+                                gv = gp[q + np.uint64(c)]
+                                fg += pf[k, c] * gv
+                                gf[c] += w * gv
+                            dlda = ti * fg - Rr[p] * iom
+                            Rr[p] += fg * w
+                            T[p] = ti
+                            if ga <= ALPHA_MAX:
+                                dx = mx - x
+                                dpow = ga * dlda
+                                s0 += dpow
+                                t1 = dpow * dx
+                                s1 += t1
+                                s2 += t1 * dx
+                    s0t += s0
                     s1t += s1
                     s2t += s2
                     sdt += s0 * dy
@@ -719,7 +801,7 @@ def raster_backward(pk, pf, pair_slot, tile_start, order, bg, width, height, g_o
                 pg[sl, 2] = gca
                 pg[sl, 3] = gcb
                 pg[sl, 4] = gcc
-                pg[sl, 5] = go
+                pg[sl, 5] = s0t / o  # dalpha/do = exp(power) = dalpha/dpower / o
                 pg[sl, 6] = gf0
                 pg[sl, 7] = gf1
                 pg[sl, 8] = gf2
