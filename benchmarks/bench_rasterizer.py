@@ -107,7 +107,7 @@ def bench_one(backend: str, width: int, height: int, n: int, repeats: int) -> di
         from ggfslam.render.types import Intrinsics, RenderSettings
 
         with torch.no_grad():
-            _, _, info = rasterize_cpu(*(params[k] for k in ("means", "quats", "scales", "opacities", "colors")),
+            *_, info = rasterize_cpu(*(params[k] for k in ("means", "quats", "scales", "opacities", "colors")),
                                        None, T, Intrinsics.of(cam), RenderSettings(), torch.zeros(3), None)
         res["n_tile_pairs"] = info.n_pairs
     res["fwd_ms"], ts, o1 = _median_ms(fwd, repeats)

@@ -95,12 +95,14 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
 
         if grad_on:
             probe = torch.zeros(n, 2, requires_grad=True)
-        img, alpha, info = rasterize_cpu(f32(means), f32(quats), f32(scales), f32(opacities), f32(colors),
-                                         f32(extras), T.cpu(), intr, settings, f32(background), probe)
-        radii = torch.from_numpy(info.radii)
-        visible = torch.from_numpy(info.visible)
-        means2d = torch.from_numpy(info.means2d)
-        depths = torch.from_numpy(info.depths)
+        color, depth_raw, alpha, depth, ext, info = rasterize_cpu(
+            f32(means), f32(quats), f32(scales), f32(opacities), f32(colors), f32(extras), T.cpu(), intr, settings,
+            f32(background), probe)
+        return RenderOutput(
+            color=color, depth=depth, depth_raw=depth_raw, alpha=alpha, extras=ext if K else None,
+            radii=torch.from_numpy(info.radii), visible=torch.from_numpy(info.visible),
+            means2d=torch.from_numpy(info.means2d), depths=torch.from_numpy(info.depths), intrinsics=intr,
+            backend=name, _means2d_probe=probe)
     elif name == "reference":
         from ggfslam.render.reference import rasterize_reference
 
@@ -124,7 +126,7 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
         if not probe.requires_grad:
             probe = None
     depth_raw = img[..., 3]
-    thr = settings.depth_min_alpha
+    thr = settings.depth_min_alpha  # the CPU backend does the same inside its kernels
     depth = torch.where(alpha > thr, depth_raw / alpha.clamp_min(max(thr, 1e-12)), torch.zeros_like(depth_raw))
     return RenderOutput(
         color=img[..., :3], depth=depth, depth_raw=depth_raw, alpha=alpha,

@@ -1,7 +1,8 @@
 """CPU backend: the numba kernels of ``kernels_cpu`` wrapped in one ``torch.autograd.Function``.
 
-One autograd node covers projection + rasterization, so torch does no per-Gaussian work: the forward
-returns the channel image [H, W, 4+K] (r, g, b, raw depth, extras) and the accumulated alpha [H, W];
+One autograd node covers projection + rasterization (and the depth normalisation), so torch does no
+per-Gaussian or per-pixel work: the forward returns colour [H, W, 3], raw depth, alpha, normalised depth
+[H, W] and extras [H, W, K] as separate tensors;
 the backward returns gradients for means, quats, scales, opacities, colours, extras, the world-to-camera
 rotation and translation (float64; torch chains them to ``pose_xi``), the background, and a
 "probe" [N, 2] whose gradient is dL/dmeans2d (the densification statistic; its value is not used).
@@ -54,36 +55,44 @@ class _RasterizeCPU(torch.autograd.Function):
                                                                                  nworkers)
         bg = np.zeros(C, np.float64)
         bg[:3] = background.detach().to(torch.float64).numpy()
-        out = np.empty((H, W, C), np.float32)
+        color = np.empty((H, W, 3), np.float32)
+        depth_raw = np.empty((H, W), np.float32)
+        ext = np.empty((H, W, K), np.float32)
+        depth = np.empty((H, W), np.float32)
         tfinal = np.empty((H, W), np.float32)
         last = np.empty((H, W), np.int64)
         work_bwd = np.empty(tile_cost.shape[0], np.float64)
-        kc.raster_forward(pk, pf, tile_start, kc.tile_order(tile_cost), bg, W, H, out, tfinal, last, work_bwd,
-                          nworkers)
+        thr = float(settings.depth_min_alpha)
+        kc.raster_forward(pk, pf, tile_start, kc.tile_order(tile_cost), bg, W, H, thr, color, depth_raw, ext, depth,
+                          tfinal, last, work_bwd, nworkers)
         info.radii, info.visible = radii, valid
         info.means2d = rec[:, kc.R_MX:kc.R_MY + 1]
         info.depths = rec[:, kc.R_Z]
         info.n_pairs = int(pk.shape[0])
         ctx.save_for_backward(means, quats, scales, R_cw, t_cw)
-        ctx.np = (vis, tile_start, pk, pf, pair_start, pair_slot, bg, tfinal, last, work_bwd, K)
+        ctx.np = (vis, tile_start, pk, pf, pair_start, pair_slot, bg, tfinal, last, work_bwd, K, depth_raw)
         ctx.intr, ctx.settings, ctx.n = intr, settings, n
-        img = torch.from_numpy(out)
-        alpha = torch.from_numpy(1.0 - tfinal)
-        return img, alpha
+        alpha = 1.0 - tfinal
+        return (torch.from_numpy(color), torch.from_numpy(depth_raw), torch.from_numpy(alpha),
+                torch.from_numpy(depth), torch.from_numpy(ext))
 
     @staticmethod
-    def backward(ctx, g_img, g_alpha):
+    def backward(ctx, g_color, g_depth_raw, g_alpha, g_depth, g_extras):
         means, quats, scales, R_cw, t_cw = ctx.saved_tensors
-        (vis, tile_start, pk, pf, pair_start, pair_slot, bg, tfinal, last, work_bwd, K) = ctx.np
+        (vis, tile_start, pk, pf, pair_start, pair_slot, bg, tfinal, last, work_bwd, K, depth_raw) = ctx.np
         intr, settings, n = ctx.intr, ctx.settings, ctx.n
         W, H = intr.width, intr.height
         C = 4 + K
-        go = np.zeros((H, W, C), np.float32) if g_img is None else _np32(g_img)
-        ga = np.zeros((H, W), np.float32) if g_alpha is None else _np32(g_alpha)
+
+        def g(t, shape):
+            return np.zeros(shape, np.float32) if t is None else _np32(t)
+
+        gc, gz, ga, gd = g(g_color, (H, W, 3)), g(g_depth_raw, (H, W)), g(g_alpha, (H, W)), g(g_depth, (H, W))
+        ge = g(g_extras, (H, W, K))
         pg = np.empty((pk.shape[0], kc.N_GEO + C), np.float32)
         nworkers = max(1, numba.get_num_threads())
-        kc.raster_backward(pk, pf, pair_slot, tile_start, kc.tile_order(work_bwd), bg, W, H, go, ga, tfinal, last,
-                           pg, nworkers)
+        kc.raster_backward(pk, pf, pair_slot, tile_start, kc.tile_order(work_bwd), bg, W, H,
+                           float(settings.depth_min_alpha), gc, gz, ge, gd, ga, depth_raw, tfinal, last, pg, nworkers)
         g_means = np.zeros((n, 3), np.float32)
         g_quats = np.zeros((n, 4), np.float32)
         g_scales = np.zeros((n, 3), np.float32)
@@ -102,8 +111,8 @@ class _RasterizeCPU(torch.autograd.Function):
         gp = g_pose.sum(axis=0)
         need = ctx.needs_input_grad
         g_bg = None
-        if need[9] and g_img is not None:
-            g_bg = (g_img[..., :3] * torch.from_numpy(tfinal)[..., None].to(g_img.dtype)).sum(dim=(0, 1))
+        if need[9] and g_color is not None:
+            g_bg = (g_color * torch.from_numpy(tfinal)[..., None].to(g_color.dtype)).sum(dim=(0, 1))
         ctx.np = None  # free the pair buffers as soon as possible
         return (
             torch.from_numpy(g_means) if need[0] else None,
@@ -123,10 +132,10 @@ class _RasterizeCPU(torch.autograd.Function):
 def rasterize_cpu(means, quats, scales, opacities, colors, extras, T_cw, intr: Intrinsics,
                   settings: RenderSettings, background: torch.Tensor, probe: torch.Tensor | None):
     """Render with the compiled kernels. ``T_cw`` [4, 4] float64 (may carry grad). Returns
-    (image [H, W, 4+K], alpha [H, W], CpuRenderInfo)."""
+    (color [H, W, 3], depth_raw [H, W], alpha [H, W], depth [H, W], extras [H, W, K], CpuRenderInfo)."""
     info = CpuRenderInfo()
     R_cw = T_cw[:3, :3]
     t_cw = T_cw[:3, 3]
-    img, alpha = _RasterizeCPU.apply(means, quats, scales, opacities, colors, extras, R_cw, t_cw, probe,
-                                     background, intr, settings, info)
-    return img, alpha, info
+    color, depth_raw, alpha, depth, ext = _RasterizeCPU.apply(means, quats, scales, opacities, colors, extras, R_cw,
+                                                              t_cw, probe, background, intr, settings, info)
+    return color, depth_raw, alpha, depth, ext, info

@@ -27,15 +27,22 @@ from ggfslam.render.types import Intrinsics, RenderSettings
 GSPLAT_MISSING = "gsplat backend needs a CUDA GPU and `pip install ggfslam[cuda]`"
 
 
+_GSPLAT_IMPORTS: bool | None = None
+
+
 def gsplat_available() -> bool:
-    """True when a CUDA device is present and gsplat imports."""
+    """True when a CUDA device is present and gsplat imports (the import is tried once per process)."""
+    global _GSPLAT_IMPORTS
     if not torch.cuda.is_available():
         return False
-    try:
-        import gsplat  # noqa: F401
-    except Exception:
-        return False
-    return True
+    if _GSPLAT_IMPORTS is None:
+        try:
+            import gsplat  # noqa: F401
+
+            _GSPLAT_IMPORTS = True
+        except Exception:  # ImportError, or a CUDA extension that fails to load
+            _GSPLAT_IMPORTS = False
+    return _GSPLAT_IMPORTS
 
 
 def rasterize_gsplat(means, quats, scales, opacities, colors, extras, T_cw, intr: Intrinsics,

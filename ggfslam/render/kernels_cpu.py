@@ -471,10 +471,12 @@ def _pair_start(mx, my, ca, cb, cc, gx0, gy0):
 
 
 @njit(cache=True, parallel=True)
-def raster_forward(pk, pf, tile_start, order, bg, width, height, out, tfinal, last, work_bwd, nworkers):
-    """Front-to-back compositing of the pairs (pk, pf) of ``bin_tiles``. Writes out [H,W,C] f32 (bg added
-    per channel), tfinal [H,W] f32, last [H,W] i64 (one past the pair index of the pixel's last contributor),
-    work_bwd [ntiles] f64 (evaluated pixels up to the tile's last contributor: backward cost estimate)."""
+def raster_forward(pk, pf, tile_start, order, bg, width, height, depth_min_alpha, color, depth_raw, extras, depth,
+                   tfinal, last, work_bwd, nworkers):
+    """Front-to-back compositing of the pairs (pk, pf) of ``bin_tiles``. Writes color [H,W,3] (plus bg),
+    depth_raw [H,W], extras [H,W,K], depth [H,W] (= depth_raw / alpha where alpha > depth_min_alpha, else 0,
+    alpha = 1 - tfinal), tfinal [H,W] (all f32), last [H,W] i64 (one past the pair index of the pixel's last
+    contributor), work_bwd [ntiles] f64 (evaluated pixels up to the tile's last contributor: backward cost)."""
     C = pf.shape[1]
     uC = np.uint64(C)
     ntx = (width + TILE - 1) // TILE
@@ -601,16 +603,24 @@ def raster_forward(pk, pf, tile_start, order, bg, width, height, out, tfinal, la
                     tp = T[p]
                     if tp == 0.0:
                         tp = Tstop[p]
-                    for c in range(C):
-                        out[y, x, c] = acc[p * C + c] + tp * bg[c]
-                    tfinal[y, x] = tp
+                    for c in range(3):
+                        color[y, x, c] = acc[p * C + c] + tp * bg[c]
+                    zr = np.float32(acc[p * C + 3])
+                    depth_raw[y, x] = zr
+                    for c in range(4, C):
+                        extras[y, x, c - 4] = acc[p * C + c]
+                    tf = np.float32(tp)
+                    tfinal[y, x] = tf
+                    a = 1.0 - np.float64(tf)
+                    depth[y, x] = zr / a if a > depth_min_alpha else 0.0
                     last[y, x] = lst[p]
 
 
 @njit(cache=True, parallel=True)
-def raster_backward(pk, pf, pair_slot, tile_start, order, bg, width, height, g_out, g_alpha, tfinal, last, pg,
-                    nworkers):
-    """Back-to-front gradients. g_out [H,W,C] f32 = dL/dout, g_alpha [H,W] f32 = dL/d(accumulated alpha).
+def raster_backward(pk, pf, pair_slot, tile_start, order, bg, width, height, depth_min_alpha, g_color, g_depth_raw,
+                    g_extras, g_depth, g_alpha, depth_raw, tfinal, last, pg, nworkers):
+    """Back-to-front gradients from dL/d(color [H,W,3], depth_raw [H,W], extras [H,W,K], depth [H,W],
+    alpha [H,W]) (f32; the depth normalisation of ``raster_forward`` is differentiated here, per pixel).
     Writes every row of pg [npairs, 6+C] f32: for pair k, at row pair_slot[k], the sums over its pixels of
     dL/d(mean_x, mean_y, conic_a, conic_b, conic_c, opacity, feat...)."""
     C = pf.shape[1]
@@ -646,11 +656,21 @@ def raster_backward(pk, pf, pair_slot, tile_start, order, bg, width, height, g_o
                     tf = np.float64(tfinal[y, x])
                     T[p] = tf
                     bgg = 0.0
-                    for c in range(C):
-                        gv = np.float64(g_out[y, x, c])
+                    for c in range(3):
+                        gv = np.float64(g_color[y, x, c])
                         gp[p * C + c] = gv
                         bgg += bg[c] * gv
-                    Rr[p] = tf * (bgg - g_alpha[y, x])
+                    gz = np.float64(g_depth_raw[y, x])
+                    gal = np.float64(g_alpha[y, x])
+                    a = 1.0 - tf
+                    if a > depth_min_alpha:  # depth = depth_raw / alpha
+                        gd = np.float64(g_depth[y, x])
+                        gz += gd / a
+                        gal -= gd * np.float64(depth_raw[y, x]) / (a * a)
+                    gp[p * C + 3] = gz
+                    for c in range(4, C):
+                        gp[p * C + c] = g_extras[y, x, c - 4]
+                    Rr[p] = tf * (bgg - gal)
                     lst[p] = last[y, x]
                     if last[y, x] > kmax:
                         kmax = last[y, x]
