@@ -28,7 +28,8 @@ import time
 import numpy as np
 import torch
 
-from ggfslam.render.scenes import room_camera, room_scene  # noqa: E402
+import ggfslam.render.kernels_cpu  # noqa: F401  (sets its numba/OpenMP defaults before numba starts threads)
+from ggfslam.render.scenes import room_camera, room_scene
 
 
 def _busy_seconds() -> float:
@@ -58,7 +59,7 @@ def wait_for_idle(max_wait_s: float, other_cores: float = 0.15) -> float:
             return others
 
 
-def _median_ms(fn, repeats: int, warmup: int = 1) -> tuple[float, list[float], float]:
+def _median_ms(fn, repeats: int, warmup: int = 3) -> tuple[float, list[float], float]:
     """Median and all times (ms) of ``fn``; also the cores used by *other* processes meanwhile."""
     for _ in range(warmup):
         fn()
@@ -218,6 +219,10 @@ def main(argv=None) -> None:
         report["machine"]["threading_layer"] = numba.threading_layer()
     except Exception:
         pass
+    from ggfslam.render import cpu as render_cpu
+
+    report["machine"]["malloc_tuning"] = render_cpu._ALLOCATOR_TUNED  # see ggfslam.render.cpu.tune_allocator
+    report["machine"]["GOMP_SPINCOUNT"] = os.environ.get("GOMP_SPINCOUNT")
     report["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)
     print(json.dumps(report, indent=1))
 

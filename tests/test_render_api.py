@@ -92,7 +92,7 @@ def test_extras_blend_like_colours():
 def test_normals_match_numpy_convention_and_plane():
     # tilted plane z = 2 + 0.3 x (camera frame), seen by a pinhole camera
     fx, fy, cx, cy, W, H = 50.0, 50.0, 19.5, 14.5, 40, 30
-    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    _, u = np.mgrid[0:H, 0:W].astype(np.float64)
     xn = (u - cx) / fx
     depth = 2.0 / (1.0 - 0.3 * xn)
     depth[5, 7] = 0.0  # a hole
@@ -157,3 +157,13 @@ def test_numba_cache_outside_repository():
     assert cache
     repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     assert not os.path.abspath(cache).startswith(repo + os.sep)
+
+
+def test_allocator_tuning_opt_out(monkeypatch):
+    from ggfslam.render import cpu
+
+    monkeypatch.setattr(cpu, "_ALLOCATOR_TUNED", None)
+    monkeypatch.setenv("GGFSLAM_MALLOC_TUNING", "0")
+    assert cpu.tune_allocator() is False
+    monkeypatch.delenv("GGFSLAM_MALLOC_TUNING")
+    assert cpu.tune_allocator() is False  # tried once per process; later calls report that result

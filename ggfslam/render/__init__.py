@@ -14,6 +14,12 @@ from ggfslam.render.pose import perturbed_T_cw, se3_exp
 from ggfslam.render.types import Intrinsics, RenderOutput, RenderSettings
 
 __all__ = [
-    "rasterize", "select_backend", "RenderSettings", "RenderOutput", "Intrinsics", "normals_from_depth",
-    "se3_exp", "perturbed_T_cw",
+    "Intrinsics",
+    "RenderOutput",
+    "RenderSettings",
+    "normals_from_depth",
+    "perturbed_T_cw",
+    "rasterize",
+    "se3_exp",
+    "select_backend",
 ]

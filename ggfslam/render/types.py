@@ -38,7 +38,7 @@ class Intrinsics:
     height: int
 
     @staticmethod
-    def of(camera: Any) -> "Intrinsics":
+    def of(camera: Any) -> Intrinsics:
         """From a ``Camera``-like object (fx fy cx cy width height attributes), a tuple or an ``Intrinsics``."""
         if isinstance(camera, Intrinsics):
             return camera
@@ -81,7 +81,7 @@ class RenderSettings:
             raise ConfigError(f"render.depth_min_alpha must be in [0, 1), got {self.depth_min_alpha}")
 
     @classmethod
-    def from_dict(cls, d: dict | None) -> "RenderSettings":
+    def from_dict(cls, d: dict | None) -> RenderSettings:
         """From a config ``render:`` section; unknown keys are an error."""
         d = dict(d or {})
         names = {f.name for f in fields(cls)}
