@@ -185,8 +185,27 @@ class BackendConfig(_Section):
 
     window: int = 8
     """Keyframes optimized by local bundle adjustment (older covisible keyframes are held fixed)."""
+    temporal_window: int = 2
+    """Local bundle adjustment also optimizes this many keyframes created just before the new one (its closest
+    views even where they share few points: low texture, dense-odometry keyframes)."""
     iterations: int = 10
     """Levenberg-Marquardt iterations per local bundle adjustment."""
+    fusion: bool = True
+    """Fuse each new keyframe's landmarks with those of its neighbours (project, match by descriptor and depth,
+    add observations / merge duplicates) before bundle adjustment, so points gain long tracks."""
+    fusion_neighbours: int = 10
+    """Keyframes (most covisible, then the most recent) searched by landmark fusion."""
+    fusion_radius: float = 3.0
+    """Search radius (px at pyramid level 0) of landmark fusion."""
+    planes: bool = True
+    """Detect the dominant planes of each keyframe's depth (floor, walls, box faces) and add them to bundle
+    adjustment as plane landmarks (GTSAM ``OrientedPlane3Factor``): they hold the pose where point tracks are short."""
+    plane_sigmas: tuple[float, float] = (0.02, 0.02)
+    """Noise of a plane observation: normal direction (rad) and distance (m)."""
+    plane_match_deg: float = 10.0
+    """A detected plane joins a map plane whose predicted normal is within this angle (degrees) ..."""
+    plane_match_distance: float = 0.08
+    """... and whose predicted distance from the camera differs by at most this much (m)."""
     huber_stereo: float = 2.796
     """Huber threshold of the whitened RGB-D (stereo) residual, sqrt(chi2_0.95(3 dof)) as in ORB-SLAM."""
     huber_mono: float = 2.448

@@ -10,7 +10,7 @@ import pytest
 
 from ggfslam import slam
 from ggfslam.backend.export import FORMAT_VERSION, MIN_COVISIBILITY, graph_to_dict, load_graph_networkx
-from ggfslam.backend.graph import L, X, calibrations, observation_factor, whitened_chi2
+from ggfslam.backend.graph import L, P, X, calibrations, observation_factor, whitened_chi2
 from ggfslam.backend.slam_map import KeyFrame, SlamMap
 from ggfslam.config import BackendConfig, TrackingConfig, config_from_dict
 from ggfslam.data.types import Camera
@@ -61,12 +61,18 @@ def test_structure_and_keys(graph):
     assert meta["camera"]["width"] == 320 and meta["virtual_baseline"] > 0
     kf_keys = {k["key"] for k in graph["keyframes"]}
     lm_keys = {l["key"] for l in graph["landmarks"]}
+    plane_keys = {p["key"] for p in graph["planes"]}
     n_obs = dict.fromkeys(lm_keys, 0)
+    n_plane_obs = dict.fromkeys(plane_keys, 0)
     for f in graph["factors"]:
-        assert f["type"] in ("rgbd_stereo", "projection", "odometry_link")
+        assert f["type"] in ("rgbd_stereo", "projection", "odometry_link", "plane")
         assert np.isfinite(f["error"]) and f["error"] >= 0
         a, b = f["keys"]
-        if f["type"] == "odometry_link":
+        if f["type"] == "plane":
+            assert a == f"x{f['kf']}" in kf_keys and b == f"p{f['plane']}" in plane_keys
+            assert f["gtsam_keys"] == [X(f["kf"]), P(f["plane"])]
+            n_plane_obs[b] += 1
+        elif f["type"] == "odometry_link":
             assert a in kf_keys and b in kf_keys
             assert f["gtsam_keys"] == [X(int(a[1:])), X(int(b[1:]))]
         else:
@@ -76,6 +82,11 @@ def test_structure_and_keys(graph):
             n_obs[b] += 1
     for l in graph["landmarks"]:  # every observation of a living landmark is a factor
         assert l["observations"] == n_obs[l["key"]] >= 1
+    assert graph["planes"], "the synthetic room's floor and walls are plane landmarks"
+    assert meta["counts"]["planes"] == len(graph["planes"])
+    for p in graph["planes"]:
+        assert p["observations"] == n_plane_obs[p["key"]] >= 1
+        assert abs(np.linalg.norm(p["coefficients"][:3]) - 1.0) < 1e-9
     for kf in graph["keyframes"]:
         assert np.allclose(np.array(kf["T_wc"])[3], [0, 0, 0, 1])
     for e in graph["covisibility"]:
@@ -87,7 +98,7 @@ def test_errors_match_gtsam(graph):
     meta = graph["meta"]
     cam = Camera(**{k: meta["camera"][k] for k in ("fx", "fy", "cx", "cy", "width", "height")})
     mono, stereo = calibrations(cam, meta["virtual_baseline"])
-    obs = [f for f in graph["factors"] if f["type"] != "odometry_link"]
+    obs = [f for f in graph["factors"] if f["type"] in ("rgbd_stereo", "projection")]
     rng = np.random.default_rng(0)
     sample = [obs[i] for i in rng.choice(len(obs), size=min(300, len(obs)), replace=False)]
     sample += [f for f in obs if f["type"] == "projection"][:50]  # make sure both kinds are compared
@@ -101,8 +112,10 @@ def test_errors_match_gtsam(graph):
 
 def test_networkx(run_dir, graph):
     g = load_graph_networkx(run_dir / GRAPH_FILE)
-    assert g.number_of_nodes() == len(graph["keyframes"]) + len(graph["landmarks"])
-    assert g.number_of_edges() == len(graph["factors"])  # one factor per (keyframe, landmark) pair
+    assert g.number_of_nodes() == len(graph["keyframes"]) + len(graph["landmarks"]) + len(graph["planes"])
+    assert g.number_of_edges() == len(graph["factors"])  # one factor per (keyframe, landmark or plane) pair
+    p0 = graph["planes"][0]
+    assert g.nodes[p0["key"]]["kind"] == "plane"
     k0 = graph["keyframes"][0]
     assert g.nodes[k0["key"]]["kind"] == "keyframe" and g.nodes[k0["key"]]["frame_index"] == k0["frame_index"]
     f = graph["factors"][0]

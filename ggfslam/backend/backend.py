@@ -13,6 +13,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ggfslam.backend.fusion import fuse_neighbours
+from ggfslam.backend.plane_map import associate_planes
 from ggfslam.backend.local_ba import BAStats, local_bundle_adjustment
 from ggfslam.backend.slam_map import KeyFrame, SlamMap
 from ggfslam.config import BackendConfig, TrackingConfig
@@ -30,6 +32,8 @@ class BackendStats:
     ba_seconds: list[float] = field(default_factory=list)
     landmarks_culled: int = 0
     outliers_removed: int = 0
+    fused_observations: int = 0
+    fused_landmarks: int = 0
     loops: list[dict] = field(default_factory=list)
 
 
@@ -80,6 +84,15 @@ class Backend:
 
     def _process(self, kf_id: int) -> None:
         self._cull(kf_id)
+        if self.bcfg.fusion:
+            neighbours = self.map.local_keyframes(kf_id, self.bcfg.fusion_neighbours, min_shared=1,
+                                                  temporal=self.bcfg.temporal_window)
+            added, merged = fuse_neighbours(self.map, kf_id, neighbours[1:], self.camera, self.tcfg,
+                                            self.bcfg.fusion_radius)
+            self.stats.fused_observations += added
+            self.stats.fused_landmarks += merged
+        if self.bcfg.planes:
+            associate_planes(self.map, kf_id, self.bcfg)
         stats: BAStats | None = local_bundle_adjustment(self.map, kf_id, self.camera, self.tcfg, self.bcfg)
         if stats is not None:
             self.stats.ba_runs += 1
@@ -95,7 +108,8 @@ class Backend:
             covisible = set(self.map.covisibility(kf.id))
             T = kf.T_wc.copy()
         f = kf.features
-        loop = self.loop_detector.add_keyframe(kf.id, f.uv, f.descriptors, f.points_cam, T, covisible)
+        planes = [p.coefficients for p in kf.meta.get("planes", [])]
+        loop = self.loop_detector.add_keyframe(kf.id, f.uv, f.descriptors, f.points_cam, T, covisible, planes)
         if loop is None:
             return
         t0 = time.perf_counter()
@@ -144,5 +158,6 @@ class Backend:
             "ba_ms_mean": 1000 * float(np.mean(s.ba_seconds)) if s.ba_seconds else 0.0,
             "ba_ms_max": 1000 * float(np.max(s.ba_seconds)) if s.ba_seconds else 0.0,
             "landmarks_culled": s.landmarks_culled, "outliers_removed": s.outliers_removed,
+            "fused_observations": s.fused_observations, "fused_landmarks": s.fused_landmarks,
             "loops": len(s.loops),
         }

@@ -17,8 +17,10 @@ with their integer values in ``gtsam_keys``:
 * ``meta``: version, camera, virtual_baseline, sigmas and Huber thresholds, counts, per-type count and error sum;
 * ``keyframes``: id, key, frame_index, timestamp, T_wc (4x4 camera-to-world), n_landmarks (living ones seen);
 * ``landmarks``: id, key, position (world), observations (keyframes seeing it);
-* ``factors``: type (``rgbd_stereo`` | ``projection`` | ``odometry_link`` | ``loop``), keys, gtsam_keys, error, chi2;
-  observations add kf, lm, kp, uv, depth (0: none), sigma; links add kf, other_kf, T_other_this;
+* ``planes``: id, key (``"p2"``), coefficients (world n, d with n . x + d = 0), observations;
+* ``factors``: type (``rgbd_stereo`` | ``projection`` | ``odometry_link`` | ``loop`` | ``plane``), keys, gtsam_keys,
+  error, chi2; observations add kf, lm, kp, uv, depth (0: none), sigma; links add kf, other_kf, T_other_this;
+  plane factors add kf, plane, measured (camera-frame coefficients);
 * ``covisibility``: kf_a < kf_b, shared (living landmarks both see), only pairs sharing >= MIN_COVISIBILITY.
 """
 from __future__ import annotations
@@ -29,7 +31,7 @@ from pathlib import Path
 import gtsam
 import numpy as np
 
-from ggfslam.backend.graph import L, X
+from ggfslam.backend.graph import L, P, X
 from ggfslam.backend.slam_map import SlamMap
 from ggfslam.config import BackendConfig, TrackingConfig
 from ggfslam.data.types import Camera
@@ -37,7 +39,7 @@ from ggfslam.data.types import Camera
 __all__ = ["FORMAT_VERSION", "graph_to_dict", "write_graph_json", "load_graph_networkx", "observation_errors",
            "huber_loss", "MIN_COVISIBILITY"]
 
-FORMAT_VERSION = "ggfslam-graph/1"
+FORMAT_VERSION = "ggfslam-graph/2"  # 2: plane landmarks and plane factors
 MIN_COVISIBILITY = 15  # shared landmarks for a covisibility edge (local BA's min_shared)
 
 
@@ -99,6 +101,9 @@ def graph_to_dict(smap: SlamMap, camera: Camera, tcfg: TrackingConfig, bcfg: Bac
             ids = kf.landmark_ids[kf.landmark_ids >= 0]
             kf_n_landmarks[kf.id] = int(smap.alive[ids].sum())
         feats = {k: smap.keyframes[k].features for k in kf_ids}
+        planes = {pid: pw.copy() for pid, pw in smap.planes.items()}
+        plane_obs = [(k, pid, z.copy()) for pid, obs in smap.plane_observations.items() for k, z in obs.items()
+                     if k in poses]
 
     obs_kf = np.asarray(obs_kf, dtype=np.int64)  # [M]
     obs_lm = np.asarray(obs_lm, dtype=np.int64)  # [M]
@@ -159,6 +164,20 @@ def graph_to_dict(smap: SlamMap, camera: Camera, tcfg: TrackingConfig, bcfg: Bac
             "T_other_this": np.asarray(T_mq).tolist(), "error": err, "chi2": 2.0 * err,
         })
 
+    # plane observations (GTSAM OrientedPlane3Factor, as local_ba builds them)
+    s_n, s_d = bcfg.plane_sigmas
+    plane_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([s_n, s_n, s_d]))
+    for k, pid, z in plane_obs:
+        f = gtsam.OrientedPlane3Factor(z, plane_noise, X(k), P(pid))
+        values = gtsam.Values()
+        values.insert(X(k), gtsam.Pose3(poses[k]))
+        values.insert(P(pid), gtsam.OrientedPlane3(*planes[pid]))
+        err = float(f.error(values))
+        factors.append({
+            "type": "plane", "keys": [_key_name("x", k), _key_name("p", pid)], "gtsam_keys": [X(k), P(pid)],
+            "kf": int(k), "plane": int(pid), "measured": z.tolist(), "error": err, "chi2": 2.0 * err,
+        })
+
     # covisibility: shared living landmarks per keyframe pair = off-diagonal of A A^T (A: keyframe x landmark)
     covis = []
     if m:
@@ -184,7 +203,9 @@ def graph_to_dict(smap: SlamMap, camera: Camera, tcfg: TrackingConfig, bcfg: Bac
             "dense_link_sigmas": list(tcfg.dense_link_sigmas), "min_covisibility": MIN_COVISIBILITY,
             "error_definition": "GTSAM factor.error (Huber kernel on observations); chi2 = squared whitened "
                                 "residual without kernel",
-            "counts": {"keyframes": len(kf_ids), "landmarks": len(lm_ids), "factors": len(factors),
+            "plane_sigmas": list(bcfg.plane_sigmas),
+            "counts": {"keyframes": len(kf_ids), "landmarks": len(lm_ids), "planes": len(planes),
+                       "factors": len(factors),
                        "observations": m, "covisibility_edges": len(covis)},
             "factors_by_type": by_type,
         },
@@ -193,6 +214,8 @@ def graph_to_dict(smap: SlamMap, camera: Camera, tcfg: TrackingConfig, bcfg: Bac
                        "n_landmarks": kf_n_landmarks[kf.id]} for kf in kfs],
         "landmarks": [{"id": int(lm), "key": _key_name("l", int(lm)), "position": positions[i].tolist(),
                        "observations": n_obs_per_lm[int(lm)]} for i, lm in enumerate(lm_ids)],
+        "planes": [{"id": int(pid), "key": _key_name("p", int(pid)), "coefficients": pw.tolist(),
+                    "observations": sum(1 for _, q, _ in plane_obs if q == pid)} for pid, pw in sorted(planes.items())],
         "factors": factors,
         "covisibility": covis,
     }
@@ -222,6 +245,8 @@ def load_graph_networkx(path: str | Path):
         g.add_node(kf["key"], kind="keyframe", **{k: v for k, v in kf.items() if k != "key"})
     for lm in data["landmarks"]:
         g.add_node(lm["key"], kind="landmark", **{k: v for k, v in lm.items() if k != "key"})
+    for pl in data.get("planes", []):
+        g.add_node(pl["key"], kind="plane", **{k: v for k, v in pl.items() if k != "key"})
     for f in data["factors"]:
         a, b = f["keys"]
         g.add_edge(a, b, **{k: v for k, v in f.items() if k != "keys"})

@@ -1,7 +1,7 @@
 """Factor-graph vocabulary: variable keys, calibrations, noise models and RGB-D observation factors (GTSAM).
 
 Keyframe poses are ``X(kf_id)`` (gtsam.Pose3, camera-to-world, OpenCV axes as GTSAM's cameras use), landmarks
-``L(lm_id)`` (gtsam.Point3, world). An RGB-D observation is GTSAM's stereo factor on a virtual stereo camera:
+``L(lm_id)`` (gtsam.Point3, world), plane landmarks ``P(plane_id)`` (gtsam.OrientedPlane3, world). An RGB-D observation is GTSAM's stereo factor on a virtual stereo camera:
 the depth z of a keypoint at (u, v) becomes a right-image coordinate u_r = u - f_x b / z (RGB-D ORB-SLAM), so
 pixel and depth errors share one whitened 3-vector. Keypoints without depth use a 2-D projection factor.
 """
@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import L, X
+from gtsam.symbol_shorthand import L, P, X
 
 from ggfslam.data.types import Camera
 
-__all__ = ["L", "X", "calibrations", "observation_factor", "is_stereo_factor", "whitened_chi2"]
+__all__ = ["L", "P", "X", "calibrations", "observation_factor", "is_stereo_factor", "whitened_chi2"]
 
 
 def calibrations(camera: Camera, baseline: float) -> tuple[gtsam.Cal3_S2, gtsam.Cal3_S2Stereo]:

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from ggfslam.backend.graph import L, X, calibrations, is_stereo_factor, observation_factor, whitened_chi2
+from ggfslam.backend.graph import L, P, X, calibrations, is_stereo_factor, observation_factor, whitened_chi2
 from ggfslam.backend.slam_map import SlamMap
 from ggfslam.config import BackendConfig, TrackingConfig
 from ggfslam.data.types import Camera
@@ -46,13 +46,21 @@ def local_bundle_adjustment(smap: SlamMap, kf_id: int, camera: Camera, tcfg: Tra
     t0 = time.perf_counter()
     level_scale = tcfg.scale_factor ** np.arange(tcfg.n_levels)
     with smap.lock:  # snapshot, so tracking can go on while the optimizer runs
-        window = smap.local_keyframes(kf_id, bcfg.window)
+        window = smap.local_keyframes(kf_id, bcfg.window, temporal=bcfg.temporal_window)
         lms = smap.landmarks_of(window)
         obs = []  # (kf, lm, kp)
         for lm in lms:
             for k, kp in smap.observations[lm].items():
                 obs.append((k, int(lm), kp))
-        observers = {k for k, _, _ in obs}
+        plane_obs = []  # (kf, plane id, camera coefficients [4])
+        if bcfg.planes:
+            pids = {p for k in window for p in smap.keyframes[k].meta.get("plane_ids", [])}
+            for pid in sorted(pids):
+                for k, z in smap.plane_observations[pid].items():
+                    if k in smap.keyframes:
+                        plane_obs.append((k, pid, z.copy()))
+        planes_w = {pid: smap.planes[pid].copy() for _, pid, _ in plane_obs}
+        observers = {k for k, _, _ in obs} | {k for k, _, _ in plane_obs}
         fixed = observers - set(window)
         if not fixed:  # the gauge: hold the oldest keyframe so the window cannot drift as a whole
             fixed = {min(window)}
@@ -82,6 +90,12 @@ def local_bundle_adjustment(smap: SlamMap, kf_id: int, camera: Camera, tcfg: Tra
     link_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([s_rot] * 3 + [s_trans] * 3))
     for k, other, T_other_k in links:
         graph.add(gtsam.BetweenFactorPose3(X(other), X(k), gtsam.Pose3(T_other_k), link_noise))
+    s_n, s_d = bcfg.plane_sigmas
+    plane_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([s_n, s_n, s_d]))
+    for pid, pw in planes_w.items():
+        values.insert(P(pid), gtsam.OrientedPlane3(*pw))
+    for k, pid, z in plane_obs:
+        graph.add(gtsam.OrientedPlane3Factor(z, plane_noise, X(k), P(pid)))
     sigmas, factors = [], []
     for k, lm, kp in obs:
         f = feats[k]
@@ -124,5 +138,7 @@ def local_bundle_adjustment(smap: SlamMap, kf_id: int, camera: Camera, tcfg: Tra
                 smap.positions[lm] = result.atPoint3(L(int(lm)))
         for lm, k in outliers:
             smap.remove_observation(lm, k)
+        for pid in planes_w:
+            smap.planes[pid] = result.atOrientedPlane3(P(pid)).planeCoefficients()
     return BAStats(len(window), len(fixed), len(lms), len(obs), len(outliers), err0, err1,
                    time.perf_counter() - t0)

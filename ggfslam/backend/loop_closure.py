@@ -79,6 +79,22 @@ class LoopClosureConfig:
     """Accept a loop with at least this many verified matches."""
     min_inlier_ratio: float = 0.25
     """... which must also be at least this fraction of the matches tried (rejects lucky fits in clutter)."""
+    min_inliers_with_planes: int = 20
+    """Where both keyframes carry detected planes (RGB-D), a loop with fewer than ``min_inliers`` (but at least
+    this many) RANSAC inliers is accepted when the planes confirm its pose: low-texture scenes rarely give 40
+    matches between views a lap apart, yet their floor and walls, measured by every depth pixel, do not lie."""
+    plane_check_deg: float = 3.0
+    """Plane confirmation: a query plane moved into the match frame by the loop pose must agree with a match
+    plane within this angle (degrees) ..."""
+    plane_check_m: float = 0.04
+    """... and this distance (m) ..."""
+    plane_sigma_rad: float = 0.01
+    """Noise of a plane's normal (rad) when confirming planes join the loop pose refinement ..."""
+    plane_sigma_m: float = 0.01
+    """... and of its distance (m)."""
+    plane_check_min: int = 2
+    """... for at least this many planes whose normals are mutually at least 30 degrees apart (one plane
+    leaves three degrees of freedom unchecked; two non-parallel ones leave one)."""
     max_correction_m: float | None = None
     """If set, reject loops whose relative pose differs from the current estimate by more (m): a guard for
     maps whose drift is known to be small. None: no limit (loops exist to fix large drift)."""
@@ -108,6 +124,7 @@ class _Keyframe:
     T_wc: np.ndarray  # [4, 4]
     covisible: set[int]
     bow: BowVector
+    planes: list[np.ndarray] = field(default_factory=list)  # [4] camera-frame plane coefficients
 
 
 # --------------------------------------------------------------------------------------------------
@@ -163,11 +180,15 @@ def _point_sigma(camera: Camera, z: np.ndarray, cfg: "LoopClosureConfig") -> np.
 
 
 def _joint_refine(camera: Camera, T_mq: np.ndarray, pts_m: np.ndarray, uv_q: np.ndarray, pts_q: np.ndarray,
-                  has_q3d: np.ndarray, cfg: "LoopClosureConfig", iterations: int = 10
+                  has_q3d: np.ndarray, cfg: "LoopClosureConfig", iterations: int = 10,
+                  plane_pairs: list[tuple[np.ndarray, np.ndarray]] | None = None,
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Gauss-Newton on T_mq with reprojection (match points -> query pixels) and 3D-3D residuals.
 
     Depth constrains what reprojection alone leaves loose (translation along the rays of distant points).
+    ``plane_pairs`` (query plane [4], match plane [4]) add plane residuals (normal and distance, sigmas
+    ``plane_sigma_rad`` and ``plane_sigma_m``): two non-parallel planes fix the rotation far better than a
+    few dozen keypoints.
     Returns T_mq [4, 4], the covariance [6, 6] of xi in T_mq * Exp(xi) (xi = [omega, v] as in GTSAM),
     scaled up when the residuals are larger than the noise model says, and the leverage [N] of each match.
     """
@@ -175,11 +196,19 @@ def _joint_refine(camera: Camera, T_mq: np.ndarray, pts_m: np.ndarray, uv_q: np.
     m3 = pts_m[has_q3d]  # [S, 3]
     w3 = 1.0 / _point_sigma(camera, m3[:, 2], cfg)  # [S]
 
+    pq = np.array([a for a, _ in plane_pairs or []]).reshape(-1, 4)  # [Q, 4] query planes
+    pm = np.array([b for _, b in plane_pairs or []]).reshape(-1, 4)  # [Q, 4] their match-frame partners
+
+    def plane_residuals(T: np.ndarray) -> np.ndarray:
+        n = pq[:, :3] @ T[:3, :3].T  # [Q, 3] query normals in the match frame
+        d = pq[:, 3] - n @ T[:3, 3]  # [Q]
+        return np.concatenate([((n - pm[:, :3]) / cfg.plane_sigma_rad).ravel(), (d - pm[:, 3]) / cfg.plane_sigma_m])
+
     def residuals(T: np.ndarray) -> np.ndarray:
         uv, _ = _project(camera, invert(T), pts_m)
         r_px = ((uv - uv_q) / cfg.pixel_sigma).ravel()  # [2N]
         r_3d = ((q3 @ T[:3, :3].T + T[:3, 3] - m3) * w3[:, None]).ravel()  # [3S]
-        return np.concatenate([r_px, r_3d])
+        return np.concatenate([r_px, r_3d, plane_residuals(T)])
 
     def jacobian(T: np.ndarray) -> np.ndarray:
         # T' = T Exp([w, v]) ~ (R (I + [w]x), t + R v). A query-frame point X = T'^-1 m moves by
@@ -196,7 +225,11 @@ def _joint_refine(camera: Camera, T_mq: np.ndarray, pts_m: np.ndarray, uv_q: np.
         J_px = (P @ dX).reshape(-1, 6) / cfg.pixel_sigma  # [2N, 6]
         J_3d = np.concatenate([-R @ _skew(q3), np.broadcast_to(R, (len(q3), 3, 3))], axis=2)  # [S, 3, 6]
         J_3d = (J_3d * w3[:, None, None]).reshape(-1, 6)  # [3S, 6]
-        return np.concatenate([J_px, J_3d])
+        # a query plane (n, d) maps to (R' n, d - (R' n) . t'): dn/dw = -R [n]x, dd/dw = t^T R [n]x, dd/dv = -n^T
+        Sn = _skew(pq[:, :3])  # [Q, 3, 3]
+        J_n = np.concatenate([-R @ Sn, np.zeros((len(pq), 3, 3))], axis=2).reshape(-1, 6) / cfg.plane_sigma_rad
+        J_d = np.concatenate([np.einsum("i,qij->qj", t @ R, Sn), -pq[:, :3]], axis=1) / cfg.plane_sigma_m  # [Q, 6]
+        return np.concatenate([J_px, J_3d, J_n, J_d])
 
     T = T_mq.copy()
     for _ in range(iterations):
@@ -224,7 +257,7 @@ def _joint_refine(camera: Camera, T_mq: np.ndarray, pts_m: np.ndarray, uv_q: np.
     h = np.einsum("ij,jk,ik->i", J, H_inv, J)  # [R]
     n = len(pts_m)
     lev = h[: 2 * n].reshape(n, 2).sum(axis=1)
-    lev[has_q3d] += h[2 * n:].reshape(-1, 3).sum(axis=1)
+    lev[has_q3d] += h[2 * n: 2 * n + 3 * len(q3)].reshape(-1, 3).sum(axis=1)
     return T, cov, lev
 
 
@@ -239,19 +272,61 @@ class PairVerification:
     n_matches: int  # descriptor matches with a 3D point on the match side (the RANSAC input)
 
 
+def matching_planes(T_mq: np.ndarray, planes_q: list[np.ndarray], planes_m: list[np.ndarray],
+                    cfg: LoopClosureConfig) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Pairs (query plane [4], match plane [4]) that coincide once the query plane ([4], camera frame,
+    n . x + d = 0) is moved into the match frame by T_mq [4, 4] (within ``plane_check_deg`` / ``plane_check_m``)."""
+    R, t = T_mq[:3, :3], T_mq[:3, 3]
+    cos_ok = np.cos(np.radians(cfg.plane_check_deg))
+    pairs = []
+    for pq in planes_q:
+        n = R @ pq[:3]
+        d = pq[3] - n @ t  # the query plane in the match frame
+        close = [pm for pm in planes_m if float(n @ pm[:3]) >= cos_ok and abs(d - pm[3]) <= cfg.plane_check_m]
+        if close:
+            pairs.append((pq, min(close, key=lambda pm: abs(d - pm[3]))))
+    return pairs
+
+
+def planes_agree(T_mq: np.ndarray, planes_q: list[np.ndarray], planes_m: list[np.ndarray],
+                 cfg: LoopClosureConfig) -> bool:
+    """Whether at least ``cfg.plane_check_min`` mutually non-parallel query planes, moved into the match frame
+    by T_mq [4, 4], coincide with planes of the match keyframe (see ``matching_planes``)."""
+    agreeing: list[np.ndarray] = []
+    for pq, _ in matching_planes(T_mq, planes_q, planes_m, cfg):
+        n = T_mq[:3, :3] @ pq[:3]
+        if all(abs(float(n @ a)) < np.cos(np.radians(30.0)) for a in agreeing):
+            agreeing.append(n)
+    return len(agreeing) >= cfg.plane_check_min
+
+
 def verify_loop_pair(camera: Camera, uv_q: np.ndarray, desc_q: np.ndarray, pts_q: np.ndarray,
                      desc_m: np.ndarray, pts_m: np.ndarray,
-                     cfg: LoopClosureConfig | None = None) -> PairVerification | None:
+                     cfg: LoopClosureConfig | None = None, planes_q: list[np.ndarray] | None = None,
+                     planes_m: list[np.ndarray] | None = None) -> PairVerification | None:
     """Relative pose of a query keyframe in a match keyframe from their features (RGB-D), or None.
 
     Query: pixels ``uv_q`` [N, 2] of ``camera`` (distorted if it has distortion), ``desc_q`` [N, 32] uint8,
     camera-frame points ``pts_q`` [N, 3] (NaN rows: no depth). Match: ``desc_m`` [M, 32], ``pts_m`` [M, 3]
-    (its pixels are not needed: its 3D points are projected into the query).
+    (its pixels are not needed: its 3D points are projected into the query). Optional planes of both
+    keyframes (camera coefficients [4]) allow a loop with fewer matches when they confirm it (see
+    ``LoopClosureConfig.min_inliers_with_planes``).
     """
     cfg = cfg or LoopClosureConfig()
+    out = _verify_by_features(camera, uv_q, desc_q, pts_q, desc_m, pts_m, cfg)
+    if out is not None or not planes_q or not planes_m or cfg.min_inliers_with_planes >= cfg.min_inliers:
+        return out
+    return _verify_with_planes(camera, uv_q, desc_q, pts_q, desc_m, pts_m, planes_q, planes_m, cfg)
+
+
+def _ransac_pnp(camera: Camera, uv_q, desc_q, pts_q, desc_m, pts_m, cfg: LoopClosureConfig, min_inliers: int):
+    """Descriptor matches and a RANSAC PnP pose of the query in the match frame, or None with too few inliers.
+
+    Returns (pairs [K, 2], match points obj [K, 3], query pixels img [K, 2] (undistorted), query points
+    q3d [K, 3], has_q3d [K], RANSAC inlier mask [K], T_mq [4, 4])."""
     pairs = match_descriptors(desc_q, desc_m, cfg.ratio_test, cfg.max_hamming)  # [K, 2]
     pairs = pairs[_valid_points(pts_m[pairs[:, 1]])]  # PnP needs the match's 3D point
-    if len(pairs) < max(cfg.min_inliers, 6):
+    if len(pairs) < max(min_inliers, 6):
         return None
     obj = np.ascontiguousarray(pts_m[pairs[:, 1]], np.float64)  # [K, 3] in the match camera
     img = np.ascontiguousarray(uv_q[pairs[:, 0]], np.float64)  # [K, 2] query pixels
@@ -261,14 +336,48 @@ def verify_loop_pair(camera: Camera, uv_q: np.ndarray, desc_q: np.ndarray, pts_q
     ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, camera.K, None, iterationsCount=cfg.ransac_iterations,
                                              reprojectionError=cfg.ransac_reproj_px,
                                              confidence=cfg.ransac_confidence, flags=cv2.SOLVEPNP_EPNP)
-    if not ok or inl is None or len(inl) < cfg.min_inliers:
+    if not ok or inl is None or len(inl) < min_inliers:
         return None
     keep = np.zeros(len(pairs), bool)
     keep[inl.reshape(-1)] = True
     q3d = pts_q[pairs[:, 0]]  # [K, 3] the query's own back-projections (NaN without depth)
-    has_q3d = _valid_points(q3d)
-    tol = np.maximum(cfg.max_point_dist_m, cfg.max_point_dist_rel * obj[:, 2])  # [K]
     T_mq = invert(make_pose(cv2.Rodrigues(rvec)[0], tvec.reshape(3)))
+    return pairs, obj, img, q3d, _valid_points(q3d), keep, T_mq
+
+
+def _verify_with_planes(camera: Camera, uv_q, desc_q, pts_q, desc_m, pts_m, planes_q, planes_m,
+                        cfg: LoopClosureConfig) -> PairVerification | None:
+    """Few-match verification: RANSAC PnP, one joint refinement of its inliers, then the planes must agree."""
+    found = _ransac_pnp(camera, uv_q, desc_q, pts_q, desc_m, pts_m, cfg, cfg.min_inliers_with_planes)
+    if found is None:
+        return None
+    pairs, obj, img, q3d, has_q3d, keep, T_mq = found
+    if keep.sum() < cfg.min_inlier_ratio * len(pairs):
+        return None
+    T_mq, cov, _ = _joint_refine(camera, T_mq, obj[keep], img[keep], q3d[keep], has_q3d[keep], cfg)
+    std = np.sqrt(np.abs(np.diag(cov)))
+    if not np.all(np.isfinite(std)) or std[3:].max() > cfg.max_sigma_trans_m or \
+            np.degrees(std[:3].max()) > cfg.max_sigma_rot_deg:
+        return None
+    if not planes_agree(T_mq, planes_q, planes_m, cfg):
+        return None
+    # the planes measure the rotation better than a few dozen keypoints: refine with them
+    T_mq, cov, _ = _joint_refine(camera, T_mq, obj[keep], img[keep], q3d[keep], has_q3d[keep], cfg,
+                                 plane_pairs=matching_planes(T_mq, planes_q, planes_m, cfg))
+    if not planes_agree(T_mq, planes_q, planes_m, cfg):
+        return None
+    rmse = float(np.sqrt(np.mean(_reproj_errors(camera, T_mq, obj[keep], img[keep]) ** 2)))
+    return PairVerification(T_mq, pairs[keep], rmse, cov, len(pairs))
+
+
+def _verify_by_features(camera: Camera, uv_q, desc_q, pts_q, desc_m, pts_m,
+                        cfg: LoopClosureConfig) -> PairVerification | None:
+    """Verification from matches alone (enough of them, none carrying the fit alone, a tight covariance)."""
+    found = _ransac_pnp(camera, uv_q, desc_q, pts_q, desc_m, pts_m, cfg, cfg.min_inliers)
+    if found is None:
+        return None
+    pairs, obj, img, q3d, has_q3d, keep, T_mq = found
+    tol = np.maximum(cfg.max_point_dist_m, cfg.max_point_dist_rel * obj[:, 2])  # [K]
     banned = np.zeros(len(pairs), bool)  # matches that alone carried too much of the fit
     for _ in range(8):  # refine on the inliers, then re-select them with the tighter thresholds
         if keep.sum() < 6:
@@ -331,9 +440,10 @@ class LoopDetector:
             self.keyframes[int(kf_id)].covisible = {int(c) for c in covisible}
 
     def add_keyframe(self, kf_id: int, uv: np.ndarray, descriptors: np.ndarray, points_cam: np.ndarray,
-                     T_wc: np.ndarray, covisible: set[int] | None = None) -> LoopResult | None:
-        """Add a keyframe (uv [N, 2], descriptors [N, 32] uint8, points_cam [N, 3] NaN = no depth) and return
-        a verified loop to an older keyframe, or None."""
+                     T_wc: np.ndarray, covisible: set[int] | None = None,
+                     planes: list[np.ndarray] | None = None) -> LoopResult | None:
+        """Add a keyframe (uv [N, 2], descriptors [N, 32] uint8, points_cam [N, 3] NaN = no depth, optional
+        planes: camera-frame coefficients [4] each) and return a verified loop to an older keyframe, or None."""
         kf_id = int(kf_id)
         uv = np.asarray(uv, np.float64).reshape(-1, 2)
         descriptors = np.ascontiguousarray(descriptors, np.uint8).reshape(-1, 32)
@@ -343,9 +453,12 @@ class LoopDetector:
                              f"{len(uv)}, {len(descriptors)}, {len(points_cam)}")
         covisible = {int(c) for c in (covisible or set())} - {kf_id}
         bow = self.vocabulary.transform(descriptors)
-        result = self._detect(kf_id, uv, descriptors, points_cam, np.asarray(T_wc, np.float64), covisible, bow)
+        planes = [np.asarray(p, np.float64).reshape(4) for p in (planes or [])]
+        result = self._detect(kf_id, uv, descriptors, points_cam, np.asarray(T_wc, np.float64), covisible, bow,
+                              planes)
         self.remove_keyframe(kf_id)  # re-adding an id replaces it
-        self.keyframes[kf_id] = _Keyframe(descriptors, points_cam, np.asarray(T_wc, np.float64).copy(), covisible, bow)
+        self.keyframes[kf_id] = _Keyframe(descriptors, points_cam, np.asarray(T_wc, np.float64).copy(), covisible, bow,
+                                          planes)
         self.database.add(kf_id, bow)
         return result
 
@@ -375,7 +488,7 @@ class LoopDetector:
         self._groups = groups
         return passed
 
-    def _detect(self, kf_id, uv, desc, pts, T_wc, covisible, bow) -> LoopResult | None:
+    def _detect(self, kf_id, uv, desc, pts, T_wc, covisible, bow, planes=None) -> LoopResult | None:
         """Candidates, then geometric verification; the verified candidate with most inliers wins."""
         cands = self._candidates(kf_id, covisible, bow)
         if self.cfg.consistency > 1:
@@ -384,7 +497,8 @@ class LoopDetector:
         best: LoopResult | None = None
         for cid, score in cands:
             kf = self.keyframes[cid]
-            out = verify_loop_pair(self.camera, uv, desc, pts, kf.descriptors, kf.points_cam, self.cfg)
+            out = verify_loop_pair(self.camera, uv, desc, pts, kf.descriptors, kf.points_cam, self.cfg, planes,
+                                   kf.planes)
             if out is None:
                 continue
             if self.cfg.max_correction_m is not None:

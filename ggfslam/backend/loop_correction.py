@@ -10,7 +10,11 @@ from ggfslam.geometry.se3 import invert
 
 # a loop's own covariance can be 1-2 mm: floor it so a slightly optimistic loop cannot tear the graph
 _LOOP_FLOOR_ROT, _LOOP_FLOOR_TRANS = np.radians(0.5), 0.01
-_ODOM_ROT, _ODOM_TRANS = 0.003, 0.005  # consecutive-keyframe edges (rad, m): BA-refined, so tight
+# consecutive-keyframe and covisibility edges (rad, m): a floor, plus a share of the motion between the two
+# keyframes (like wheel odometry, the error of visual odometry grows with the motion: ~1 cm and ~1 degree per
+# 15-20 cm / 7 degree step on real Kinect data, a few mm per 5 cm step on synthetic frames)
+_ODOM_ROT, _ODOM_TRANS = 0.003, 0.005
+_ODOM_SHARE = 0.05
 _COVIS_MIN_SHARED = 100  # covisibility edges only between keyframes sharing this many landmarks
 
 
@@ -18,19 +22,29 @@ def loop_edges(smap: SlamMap, loop: LoopResult) -> list[PoseEdge]:
     """Consecutive-keyframe and strong covisibility edges from the current estimates, plus the loop edge."""
     poses = smap.poses()
     ids = sorted(poses)
-    edges = [PoseEdge(a, b, invert(poses[a]) @ poses[b], _ODOM_ROT, _ODOM_TRANS, kind="odometry")
+    edges = [_relative_edge(poses, a, b, "odometry", smap.covisibility(a).get(b, 0))
              for a, b in zip(ids[:-1], ids[1:])]
     consecutive = set(zip(ids[:-1], ids[1:]))
     for a in ids:
         for b, shared in smap.covisibility(a).items():
             if a < b and shared >= _COVIS_MIN_SHARED and (a, b) not in consecutive and \
                     {a, b} != {loop.match_id, loop.query_id}:
-                edges.append(PoseEdge(a, b, invert(poses[a]) @ poses[b], _ODOM_ROT, _ODOM_TRANS,
-                                      kind="covisibility"))
+                edges.append(_relative_edge(poses, a, b, "covisibility", shared))
     # earlier loops stay in the graph, or a new loop correction could undo them
     for m, q, T_mq, cov in smap.loops + [(loop.match_id, loop.query_id, loop.T_match_query, loop_covariance(loop))]:
         edges.append(PoseEdge(m, q, T_mq, kind="loop", covariance=cov))
     return edges
+
+
+def _relative_edge(poses: dict[int, np.ndarray], a: int, b: int, kind: str, shared: int) -> PoseEdge:
+    """An edge holding keyframes a and b at their current relative pose; its sigmas grow with the motion and
+    shrink with the landmarks both see (a pair tied only by dense odometry is the likeliest place of drift)."""
+    T = invert(poses[a]) @ poses[b]
+    angle = float(np.arccos(np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+    dist = float(np.linalg.norm(T[:3, 3]))
+    weak = float(np.clip(np.sqrt(_COVIS_MIN_SHARED / max(shared, 1)), 1.0, 5.0))
+    return PoseEdge(a, b, T, weak * (_ODOM_ROT + _ODOM_SHARE * angle), weak * (_ODOM_TRANS + _ODOM_SHARE * dist),
+                    kind=kind)
 
 
 def loop_covariance(loop: LoopResult) -> np.ndarray:
@@ -47,7 +61,9 @@ def close_loop(smap: SlamMap, loop: LoopResult) -> dict[int, np.ndarray]:
     """
     with smap.lock:
         old = smap.poses()
-        new = optimize_pose_graph(old, loop_edges(smap, loop), fixed_ids={loop.match_id})
+        # the first loop has no other loop to disagree with: after verification it is trusted (as ORB-SLAM does);
+        # later ones go through the robust solve, which drops a loop edge the others contradict
+        new = optimize_pose_graph(old, loop_edges(smap, loop), fixed_ids={loop.match_id}, robust=bool(smap.loops))
         for k, T in new.items():
             smap.keyframes[k].T_wc = T
         smap.loops.append((loop.match_id, loop.query_id, loop.T_match_query.copy(), loop_covariance(loop)))

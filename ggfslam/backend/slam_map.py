@@ -41,6 +41,9 @@ class SlamMap:
         self.size = 0
         # closed loops: (match kf, query kf, T_match_query [4, 4], covariance [6, 6] of the loop edge)
         self.loops: list[tuple[int, int, np.ndarray, np.ndarray]] = []
+        # plane landmarks (see backend/plane_map.py): id -> world coefficients [4] (n, d), n . x + d = 0
+        self.planes: dict[int, np.ndarray] = {}
+        self.plane_observations: dict[int, dict[int, np.ndarray]] = {}  # plane id -> {kf id: camera coefficients [4]}
 
     # --- landmarks --------------------------------------------------------------------------------
     def _grow(self) -> None:
@@ -140,10 +143,14 @@ class SlamMap:
             count.pop(kf_id, None)
             return count
 
-    def local_keyframes(self, kf_id: int, n: int, min_shared: int = 15) -> list[int]:
-        """``kf_id`` and up to ``n - 1`` keyframes sharing the most landmarks with it."""
+    def local_keyframes(self, kf_id: int, n: int, min_shared: int = 15, temporal: int = 0) -> list[int]:
+        """``kf_id``, up to ``n - 1`` keyframes sharing the most landmarks with it, and the ``temporal`` keyframes
+        created just before it (which may share few points where texture is poor, yet are its closest views)."""
         cov = self.covisibility(kf_id)
-        return [kf_id] + [k for k, c in cov.most_common(n - 1) if c >= min_shared]
+        out = [kf_id] + [k for k, c in cov.most_common(n - 1) if c >= min_shared]
+        with self.lock:
+            earlier = sorted(k for k in self.keyframes if k < kf_id)[::-1][:temporal]
+        return out + [k for k in earlier if k not in out]
 
     def landmarks_of(self, kf_ids: list[int]) -> np.ndarray:
         """Sorted ids of living landmarks observed by any of the keyframes."""

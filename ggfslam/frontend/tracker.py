@@ -15,12 +15,14 @@ import cv2
 import numpy as np
 
 from ggfslam.backend.backend import Backend
+from ggfslam.backend.fusion import project_landmarks
 from ggfslam.backend.slam_map import KeyFrame
 from ggfslam.config import TrackingConfig
 from ggfslam.data.types import Camera, Frame
 from ggfslam.frontend.dense_odometry import DenseOdometry
 from ggfslam.frontend.features import Features, OrbExtractor
 from ggfslam.frontend.matching import match_projected, match_ratio
+from ggfslam.frontend.planes import detect_planes
 from ggfslam.frontend.pose_refine import refine_pose
 from ggfslam.frontend.types import TrackingState, TrackResult
 from ggfslam.geometry.se3 import invert
@@ -74,20 +76,9 @@ class OrbTracker:
     def _project(self, T_wc: np.ndarray, lm: np.ndarray):
         """Pixels [K, 2], predicted levels [K] and in-view mask [K] of landmarks seen from T_wc."""
         with self.map.lock:
-            X = self.map.positions[lm]
-            ref_d, ref_o = self.map.ref_distance[lm], self.map.ref_octave[lm]
-        T_cw = invert(T_wc)
-        p = X @ T_cw[:3, :3].T + T_cw[:3, 3]  # [K, 3]
-        z = p[:, 2]
-        zs = np.where(z > 1e-6, z, 1.0)
-        uv = np.stack([self.camera.fx * p[:, 0] / zs + self.camera.cx,
-                       self.camera.fy * p[:, 1] / zs + self.camera.cy], axis=1)
-        dist = np.linalg.norm(p, axis=1)
-        inside = (z > 0.05) & (uv[:, 0] >= 0) & (uv[:, 0] < self.camera.width) & (uv[:, 1] >= 0) & \
-                 (uv[:, 1] < self.camera.height) & (dist < 3.0 * ref_d * self.level_scale[-1])
-        # a point seen at level o from distance d appears at level o + log_s(d / dist) from distance dist
-        level = np.round(ref_o + np.log(np.maximum(ref_d, 1e-6) / np.maximum(dist, 1e-6)) / np.log(self.cfg.scale_factor))
-        return uv, np.clip(level, 0, self.cfg.n_levels - 1).astype(np.int64), inside
+            uv, _, level, inside = project_landmarks(self.map, lm, T_wc, self.camera, self.cfg.scale_factor,
+                                                     self.cfg.n_levels)
+        return uv, level, inside
 
     def _search(self, T: np.ndarray, F: Features, lm: np.ndarray, radius: float, taken: np.ndarray | None = None):
         """Match landmarks lm to keypoints by projection from T; returns (landmark ids, keypoint indices, in view)."""
@@ -190,21 +181,29 @@ class OrbTracker:
         return None
 
     # --- keyframes ------------------------------------------------------------------------------------
-    def _dense_step(self, frame: Frame) -> np.ndarray | None:
-        """Pose of the frame by dense RGB-D odometry from the previous frame, or None if it fails."""
+    def _dense_step(self, frame: Frame, guess: np.ndarray | None = None) -> np.ndarray | None:
+        """Pose of the frame by dense RGB-D odometry from the previous frame, or None if it fails.
+
+        Dense alignment converges only near the answer: it starts from no motion and, when given, from a
+        (weak) feature estimate ``guess`` [4, 4] as well, and keeps the result with the larger overlap."""
         if self.last_frame is None:
             return None
-        ok, T_prev_cur, fitness = self.dense.relative(self.dense.rgbd(frame), self.dense.rgbd(self.last_frame),
-                                                      np.eye(4))
-        if not ok or fitness < 0.3:
-            return None
-        return self.last_T @ T_prev_cur
+        cur, prev = self.dense.rgbd(frame), self.dense.rgbd(self.last_frame)
+        inits = [np.eye(4)] + ([invert(self.last_T) @ guess] if guess is not None else [])
+        best, best_fit = None, 0.3  # below this overlap the alignment is not trusted
+        for init in inits:
+            ok, T_prev_cur, fitness = self.dense.relative(cur, prev, init)
+            if ok and fitness > best_fit:
+                best, best_fit = T_prev_cur, fitness
+        return None if best is None else self.last_T @ best
 
     def _new_keyframe(self, frame: Frame, F: Features, T: np.ndarray, lm: np.ndarray, kp: np.ndarray,
                       link: tuple[int, np.ndarray] | None = None) -> KeyFrame:
         kf = KeyFrame(self.next_kf_id, frame.index, frame.timestamp, T.copy(), F, np.full(len(F), -1, np.int64))
         if link is not None:
             kf.meta["odometry_link"] = link  # (keyframe id, T_that_this)
+        if self.backend.bcfg.planes:
+            kf.meta["planes"] = detect_planes(frame.depth, self.camera)
         self.next_kf_id += 1
         self.map.add_keyframe(kf)
         with self.map.lock:
@@ -254,7 +253,7 @@ class OrbTracker:
             if guess is None:
                 guess = self._pnp(F, self.map.keyframes[self.ref_kf])
             if self.dense is not None and (guess is None or len(guess[1]) < self.cfg.dense_guess_below):
-                dense_T = self._dense_step(frame)  # few feature matches: a dense estimate may place the frame better
+                dense_T = self._dense_step(frame, None if guess is None else guess[0])  # few feature matches: a dense estimate may place the frame better
             tries = [self._track_local_map(F, *guess)] if guess is not None else []
             if dense_T is not None:
                 tries.append(self._track_local_map(F, dense_T, empty, empty))

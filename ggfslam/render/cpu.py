@@ -87,8 +87,8 @@ class _RasterizeCPU(torch.autograd.Function):
         kc.project_forward(m_np, q_np, s_np, o_np, R, t, intr.fx, intr.fy, intr.cx, intr.cy, W, H,
                            float(settings.near_plane), float(settings.far_plane), float(settings.eps2d),
                            rec, radii, valid, nworkers)
-        vis, tile_start, pk, pf, pair_start, pair_slot, tile_cost = kc.bin_tiles(valid, rec, c_np, e_np, W, H,
-                                                                                 nworkers)
+        vis, tile_start, pidx, srec, sfeat, pair_start, pair_slot, tile_cost = kc.bin_tiles(valid, rec, c_np, e_np,
+                                                                                            W, H, nworkers)
         bg = np.zeros(C, np.float64)
         bg[:3] = background.detach().to(torch.float64).numpy()
         color = np.empty((H, W, 3), np.float32)
@@ -99,14 +99,14 @@ class _RasterizeCPU(torch.autograd.Function):
         last = np.empty((H, W), np.int64)
         work_bwd = np.empty(tile_cost.shape[0], np.float64)
         thr = float(settings.depth_min_alpha)
-        kc.raster_forward(pk, pf, tile_start, kc.tile_order(tile_cost), bg, W, H, thr, color, depth_raw, ext, depth,
+        kc.raster_forward(srec, sfeat, pidx, tile_start, kc.tile_order(tile_cost), bg, W, H, thr, color, depth_raw, ext, depth,
                           tfinal, last, work_bwd, nworkers)
         info.radii, info.visible = radii, valid
         info.means2d = rec[:, kc.R_MX:kc.R_MY + 1]
         info.depths = rec[:, kc.R_Z]
-        info.n_pairs = int(pk.shape[0])
+        info.n_pairs = int(pidx.shape[0])
         ctx.save_for_backward(means, quats, scales, R_cw, t_cw)
-        ctx.np = (vis, tile_start, pk, pf, pair_start, pair_slot, bg, tfinal, last, work_bwd, K, depth_raw)
+        ctx.np = (vis, tile_start, pidx, srec, sfeat, pair_start, pair_slot, bg, tfinal, last, work_bwd, K, depth_raw)
         ctx.intr, ctx.settings, ctx.n = intr, settings, n
         alpha = 1.0 - tfinal
         return (torch.from_numpy(color), torch.from_numpy(depth_raw), torch.from_numpy(alpha),
@@ -115,7 +115,7 @@ class _RasterizeCPU(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g_color, g_depth_raw, g_alpha, g_depth, g_extras):
         means, quats, scales, R_cw, t_cw = ctx.saved_tensors
-        (vis, tile_start, pk, pf, pair_start, pair_slot, bg, tfinal, last, work_bwd, K, depth_raw) = ctx.np
+        (vis, tile_start, pidx, srec, sfeat, pair_start, pair_slot, bg, tfinal, last, work_bwd, K, depth_raw) = ctx.np
         intr, settings, n = ctx.intr, ctx.settings, ctx.n
         W, H = intr.width, intr.height
         C = 4 + K
@@ -125,9 +125,9 @@ class _RasterizeCPU(torch.autograd.Function):
 
         gc, gz, ga, gd = g(g_color, (H, W, 3)), g(g_depth_raw, (H, W)), g(g_alpha, (H, W)), g(g_depth, (H, W))
         ge = g(g_extras, (H, W, K))
-        pg = np.empty((pk.shape[0], kc.N_GEO + C), np.float32)
+        pg = np.empty((pidx.shape[0], kc.N_GEO + C), np.float32)
         nworkers = max(1, numba.get_num_threads())
-        kc.raster_backward(pk, pf, pair_slot, tile_start, kc.tile_order(work_bwd), bg, W, H,
+        kc.raster_backward(srec, sfeat, pidx, pair_slot, tile_start, kc.tile_order(work_bwd), bg, W, H,
                            float(settings.depth_min_alpha), gc, gz, ge, gd, ga, depth_raw, tfinal, last, pg, nworkers)
         g_means = np.zeros((n, 3), np.float32)
         g_quats = np.zeros((n, 4), np.float32)

@@ -64,6 +64,7 @@ import numpy as np
 from numba import njit, prange, types
 from numba.core import cgutils
 from numba.extending import intrinsic
+from llvmlite import ir
 
 if not numba.config.CACHE_DIR:  # numba was imported before the variable was set: point it there anyway
     numba.config.CACHE_DIR = os.environ["NUMBA_CACHE_DIR"]
@@ -104,6 +105,66 @@ def _fetch_add(typingctx, counter, val):
         return builder.atomic_rmw("add", ptr, args[1], "monotonic")
 
     return sig, codegen
+
+
+@intrinsic
+def _prefetch(typingctx, arr, row):
+    """Software prefetch (read, keep in all cache levels) of ``arr[row, 0]`` (2-D C-contiguous array)."""
+    if not (isinstance(arr, types.Array) and arr.ndim == 2 and isinstance(row, types.Integer)):
+        return None
+    sig = types.void(arr, row)
+
+    def codegen(context, builder, signature, args):
+        arrty = signature.args[0]
+        ary = context.make_array(arrty)(context, builder, args[0])
+        zero = context.get_constant(types.intp, 0)
+        r = context.cast(builder, args[1], signature.args[1], types.intp)
+        ptr = cgutils.get_item_pointer(context, builder, arrty, ary, [r, zero], wraparound=False)
+        i8p = ir.IntType(8).as_pointer()
+        i32 = ir.IntType(32)
+        fnty = ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32])
+        fn = cgutils.get_or_insert_function(builder.module, fnty, "llvm.prefetch.p0")
+        builder.call(fn, [builder.bitcast(ptr, i8p), i32(0), i32(3), i32(1)])
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+@intrinsic
+def _prefetch_last(typingctx, arr, row):
+    """Software prefetch of ``arr[row, -1]`` (2-D C-contiguous array)."""
+    if not (isinstance(arr, types.Array) and arr.ndim == 2 and isinstance(row, types.Integer)):
+        return None
+    sig = types.void(arr, row)
+
+    def codegen(context, builder, signature, args):
+        arrty = signature.args[0]
+        ary = context.make_array(arrty)(context, builder, args[0])
+        shape = cgutils.unpack_tuple(builder, ary.shape, 2)
+        last = builder.sub(shape[1], context.get_constant(types.intp, 1))
+        r = context.cast(builder, args[1], signature.args[1], types.intp)
+        ptr = cgutils.get_item_pointer(context, builder, arrty, ary, [r, last], wraparound=False)
+        i8p = ir.IntType(8).as_pointer()
+        i32 = ir.IntType(32)
+        fnty = ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32])
+        fn = cgutils.get_or_insert_function(builder.module, fnty, "llvm.prefetch.p0")
+        builder.call(fn, [builder.bitcast(ptr, i8p), i32(0), i32(3), i32(1)])
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+PREFETCH_AHEAD = 8  # records prefetched ahead in gathers
+
+
+@njit(cache=True, inline="always")
+def _prefetch_pair(pk, pf, pidx, k, kend):
+    """Prefetch the record and features of pair k (if k < kend; they may straddle two cache lines)."""
+    if k < kend:
+        j = pidx[k]
+        _prefetch(pk, j)
+        _prefetch_last(pk, j)
+        _prefetch(pf, j)
 
 
 # record of a projected Gaussian (float32 x 16)
@@ -273,142 +334,148 @@ def _project_one(i, means, quats, scales, opac, Rcw, tcw, fx, fy, cx, cy, width,
 
 
 @njit(cache=True)
-def _radix_argsort_positive(keys):
-    """Stable argsort of non-negative float32 keys (bit patterns sort like the values). Returns int32."""
-    n = keys.shape[0]
-    bits = keys.view(np.uint32)
-    idx = np.arange(n).astype(np.int32)
-    tmp = np.empty(n, np.int32)
+def _radix_sort_hi32(a, tmp):
+    """Stable sort of uint64 values by their upper 32 bits (LSD radix, three 11-bit digits; a pass whose digit
+    is the same for every value is skipped). Returns the sorted array (``a`` or ``tmp``)."""
+    n = a.shape[0]
     counts = np.empty(2048, np.int64)
-    for shift in (0, 11, 22):
+    m = np.uint64(2047)
+    for shift in (32, 43, 54):
+        sh = np.uint64(shift)
         counts[:] = 0
         for j in range(n):
-            counts[(bits[idx[j]] >> shift) & 2047] += 1
+            counts[(a[j] >> sh) & m] += 1
+        if n == 0 or counts[(a[0] >> sh) & m] == n:
+            continue
         tot = 0
         for b in range(2048):
             c = counts[b]
             counts[b] = tot
             tot += c
         for j in range(n):
-            b = (bits[idx[j]] >> shift) & 2047
-            tmp[counts[b]] = idx[j]
+            v = a[j]
+            b = (v >> sh) & m
+            tmp[counts[b]] = v
             counts[b] += 1
-        idx, tmp = tmp, idx
-    return idx
+        a, tmp = tmp, a
+    return a
 
 
 @njit(cache=True, parallel=True)
 def bin_tiles(valid, rec, colors, extras, width, height, nworkers):
-    """Depth-sort the visible Gaussians and build the tile lists with per-pair copies of their data.
+    """Depth-sort the visible Gaussians and build the tile lists.
 
     Returns
       vis [Nv] i32: original index of each visible Gaussian (ascending index order, "compact" order);
       tile_start [ntiles+1] i64: pairs of tile t are tile_start[t]:tile_start[t+1], in depth order;
-      pk [npairs, 16] f32: record of the pair's Gaussian; pf [npairs, 4+K] f32: its (r, g, b, z, extras);
+      pidx [npairs] i32: depth rank of the pair's Gaussian (its row in srec / sfeat);
+      srec [Nv, 16] f32: records in depth order; sfeat [Nv, 4+K] f32: their (r, g, b, z, extras);
       pair_start [Nv+1] i64, pair_slot [npairs] i64: pair k's slot in Gaussian-major order; the slots of
       compact Gaussian j are pair_start[j]:pair_start[j+1] (the backward writes gradients by slot);
       tile_cost [ntiles] f64: estimated forward cost of each tile."""
     n = valid.shape[0]
     K = extras.shape[1]
     C = 4 + K
+    ntx = (width + TILE - 1) // TILE
+    nty = (height + TILE - 1) // TILE
+    ntiles = ntx * nty
     nv = 0
     for i in range(n):
         if valid[i]:
             nv += 1
-    # compaction: copies of the visible records / features in index order. Random accesses below only
-    # touch these small arrays (page-table misses on big arrays cost ~100 ns each in a VM).
+    # compaction (index order): sort keys (depth bits << 32 | compact index) and pair counts
     vis = np.empty(nv, np.int32)
-    keys = np.empty(nv, np.float32)
-    crec = np.empty((nv, REC), np.float32)
-    cfeat = np.empty((nv, C), np.float32)
+    skey = np.empty(nv, np.uint64)
+    pair_start = np.empty(nv + 1, np.int64)
+    pair_start[0] = 0
+    zbits = rec.view(np.uint32)  # non-negative float32 depths sort like their bit patterns
     j = 0
+    tot = 0
     for i in range(n):
         if valid[i]:
             vis[j] = i
-            keys[j] = rec[i, R_Z]
-            for f in range(REC):
-                crec[j, f] = rec[i, f]
-            cfeat[j, 0] = colors[i, 0]
-            cfeat[j, 1] = colors[i, 1]
-            cfeat[j, 2] = colors[i, 2]
-            cfeat[j, 3] = rec[i, R_Z]
-            for c in range(K):
-                cfeat[j, 4 + c] = extras[i, c]
+            skey[j] = (np.uint64(zbits[i, R_Z]) << np.uint64(32)) | np.uint64(j)
+            tx0 = np.int64(rec[i, R_X0]) // TILE
+            tx1 = np.int64(rec[i, R_X1]) // TILE
+            ty0 = np.int64(rec[i, R_Y0]) // TILE
+            ty1 = np.int64(rec[i, R_Y1]) // TILE
+            tot += (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
             j += 1
-    perm = _radix_argsort_positive(keys)  # depth order -> compact index
-    ntx = (width + TILE - 1) // TILE
-    nty = (height + TILE - 1) // TILE
-    ntiles = ntx * nty
-    tr = np.empty((nv, 4), np.int32)  # tile ranges tx0, tx1, ty0, ty1 (compact order)
-    pair_start = np.zeros(nv + 1, np.int64)
-    for j in range(nv):
-        tx0 = np.int32(crec[j, R_X0]) // TILE
-        tx1 = np.int32(crec[j, R_X1]) // TILE
-        ty0 = np.int32(crec[j, R_Y0]) // TILE
-        ty1 = np.int32(crec[j, R_Y1]) // TILE
-        tr[j, 0] = tx0
-        tr[j, 1] = tx1
-        tr[j, 2] = ty0
-        tr[j, 3] = ty1
-        pair_start[j + 1] = (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
-    for j in range(nv):
-        pair_start[j + 1] += pair_start[j]
-    # depth-sorted copies: the row fills below then read memory in increasing order
+            pair_start[j] = tot
+    skey = _radix_sort_hi32(skey, np.empty(nv, np.uint64))  # stable: ties keep the compact order
+    # depth-ordered copies (parallel gather; the rasterizers read the records from here)
     srec = np.empty((nv, REC), np.float32)
     sfeat = np.empty((nv, C), np.float32)
-    str_ = np.empty((nv, 4), np.int32)
+    str_ = np.empty((nv, 4), np.int32)  # tile ranges tx0, tx1, ty0, ty1
     sbase = np.empty(nv, np.int64)
-    for s in range(nv):
-        j = perm[s]
-        for f in range(REC):
-            srec[s, f] = crec[j, f]
-        for c in range(C):
-            sfeat[s, c] = cfeat[j, c]
-        for f in range(4):
-            str_[s, f] = tr[j, f]
-        sbase[s] = pair_start[j]
-    # rows of tiles: depth-ordered lists of the Gaussians touching each row (serial, O(sum of rows))
+    nch = (nv + CHUNK - 1) // CHUNK
+    counter = np.zeros(1, np.int64)
+    for _w in prange(nworkers):
+        while True:
+            ch = _fetch_add(counter, np.int64(1))
+            if ch >= nch:
+                break
+            s1 = min(nv, (ch + 1) * CHUNK)
+            for s in range(ch * CHUNK, s1):
+                if s + PREFETCH_AHEAD < s1:
+                    _prefetch(rec, vis[np.int64(skey[s + PREFETCH_AHEAD] & np.uint64(0xFFFFFFFF))])
+                jj = np.int64(skey[s] & np.uint64(0xFFFFFFFF))
+                i = vis[jj]
+                for f in range(REC):
+                    srec[s, f] = rec[i, f]
+                sfeat[s, 0] = colors[i, 0]
+                sfeat[s, 1] = colors[i, 1]
+                sfeat[s, 2] = colors[i, 2]
+                sfeat[s, 3] = rec[i, R_Z]
+                for c in range(K):
+                    sfeat[s, 4 + c] = extras[i, c]
+                str_[s, 0] = np.int32(rec[i, R_X0]) // TILE
+                str_[s, 1] = np.int32(rec[i, R_X1]) // TILE
+                str_[s, 2] = np.int32(rec[i, R_Y0]) // TILE
+                str_[s, 3] = np.int32(rec[i, R_Y1]) // TILE
+                sbase[s] = pair_start[jj]
+    # rows of tiles: depth-ordered lists of the Gaussians touching each row, and tile sizes (serial)
     row_start = np.zeros(nty + 1, np.int64)
+    tile_count = np.zeros(ntiles, np.int64)
     for s in range(nv):
+        tx0 = str_[s, 0]
+        tx1 = str_[s, 1]
         for r in range(str_[s, 2], str_[s, 3] + 1):
             row_start[r + 1] += 1
+            for t in range(r * ntx + tx0, r * ntx + tx1 + 1):
+                tile_count[t] += 1
     for r in range(nty):
         row_start[r + 1] += row_start[r]
     row_list = np.empty(row_start[nty], np.int32)
     cursor = row_start[:nty].copy()
-    tile_count = np.zeros(ntiles, np.int64)
     for s in range(nv):
         for r in range(str_[s, 2], str_[s, 3] + 1):
             row_list[cursor[r]] = s
             cursor[r] += 1
-            for t in range(str_[s, 0], str_[s, 1] + 1):
-                tile_count[r * ntx + t] += 1
-    tile_start = np.zeros(ntiles + 1, np.int64)
+    tile_start = np.empty(ntiles + 1, np.int64)
+    tile_start[0] = 0
     for t in range(ntiles):
         tile_start[t + 1] = tile_start[t] + tile_count[t]
     npairs = tile_start[ntiles]
-    pk = np.empty((npairs, REC), np.float32)
-    pf = np.empty((npairs, C), np.float32)
+    pidx = np.empty(npairs, np.int32)
     pair_slot = np.empty(npairs, np.int64)
     tile_cost = np.zeros(ntiles, np.float64)
-    counter = np.zeros(1, np.int64)
+    counter2 = np.zeros(1, np.int64)
     for _w in prange(nworkers):
         while True:
-            r = _fetch_add(counter, np.int64(1))
+            r = _fetch_add(counter2, np.int64(1))
             if r >= nty:
                 break
-            _fill_row(r, row_start, row_list, str_, srec, sfeat, sbase, tile_start, tile_count, pk, pf,
-                      pair_slot, tile_cost, ntx, width, height)
-    return vis, tile_start, pk, pf, pair_start, pair_slot, tile_cost
+            _fill_row(r, row_start, row_list, str_, srec, sbase, tile_start, tile_count, pidx, pair_slot,
+                      tile_cost, ntx, width, height)
+    return vis, tile_start, pidx, srec, sfeat, pair_start, pair_slot, tile_cost
 
 
 @njit(cache=True, inline="always")
-def _fill_row(r, row_start, row_list, tr, crec, cfeat, pair_start, tile_start, tile_count, pk, pf, pair_slot,
-              tile_cost, ntx, width, height):
-    """Copy the Gaussians of tile row r into their tiles' pair slots (body of ``bin_tiles``). Here tr, crec,
-    cfeat and pair_start are in depth order and row_list holds depth ranks, so reads go forward in memory
-    (with index-ordered arrays the random reads made this loop 1.5-2x slower)."""
-    C = pf.shape[1]
+def _fill_row(r, row_start, row_list, tr, crec, pair_start, tile_start, tile_count, pidx, pair_slot, tile_cost,
+              ntx, width, height):
+    """Append the Gaussians of tile row r to their tiles' pair lists (body of ``bin_tiles``). Here tr, crec
+    and pair_start are in depth order and row_list holds depth ranks, so reads go forward in memory."""
     py0 = r * TILE
     py1 = min(py0 + TILE, height) - 1
     for t in range(ntx):
@@ -426,10 +493,7 @@ def _fill_row(r, row_start, row_list, tr, crec, cfeat, pair_start, tile_start, t
             tile = r * ntx + t
             pos = tile_count[tile]
             tile_count[tile] = pos + 1
-            for f in range(REC):
-                pk[pos, f] = crec[j, f]
-            for c in range(C):
-                pf[pos, c] = cfeat[j, c]
+            pidx[pos] = j
             pair_slot[pos] = base + t
             px0 = t * TILE
             px1 = min(px0 + TILE, width) - 1
@@ -474,7 +538,7 @@ def _pair_start(mx, my, ca, cb, cc, gx0, gy0):
 
 
 @njit(cache=True, parallel=True, fastmath=FMA)
-def raster_forward(pk, pf, tile_start, order, bg, width, height, depth_min_alpha, color, depth_raw, extras, depth,
+def raster_forward(pk, pf, pidx, tile_start, order, bg, width, height, depth_min_alpha, color, depth_raw, extras, depth,
                    tfinal, last, work_bwd, nworkers):
     """Front-to-back compositing of the pairs (pk, pf) of ``bin_tiles``. Writes color [H,W,3] (plus bg),
     depth_raw [H,W], extras [H,W,K], depth [H,W] (= depth_raw / alpha where alpha > depth_min_alpha, else 0,
@@ -510,26 +574,31 @@ def raster_forward(pk, pf, tile_start, order, bg, width, height, depth_min_alpha
             ndone = 0
             work = 0.0
             work_last = 0.0
-            for k in range(k0, tile_start[tile + 1]):
-                gx0 = max(np.int64(pk[k, R_X0]), x0)
-                gx1 = min(np.int64(pk[k, R_X1]), x1)
-                gy0 = max(np.int64(pk[k, R_Y0]), y0)
-                gy1 = min(np.int64(pk[k, R_Y1]), y1)
-                mx = np.float64(pk[k, R_MX])
-                my = np.float64(pk[k, R_MY])
-                ca = np.float64(pk[k, R_CA])
-                cb = np.float64(pk[k, R_CB])
-                cc = np.float64(pk[k, R_CC])
-                o = np.float64(pk[k, R_OP])
-                qmax = np.float64(pk[k, R_QMAX])
-                ea = np.float64(pk[k, R_EA])
-                eb = np.float64(pk[k, R_EB])
-                ec = np.float64(pk[k, R_EC])
-                chord = pk[k, R_CHORD] != 0.0
-                f0 = np.float64(pf[k, 0])
-                f1 = np.float64(pf[k, 1])
-                f2 = np.float64(pf[k, 2])
-                f3 = np.float64(pf[k, 3])
+            kend = tile_start[tile + 1]
+            _prefetch_pair(pk, pf, pidx, k0, kend)
+            _prefetch_pair(pk, pf, pidx, k0 + 1, kend)
+            for k in range(k0, kend):
+                _prefetch_pair(pk, pf, pidx, k + 2, kend)
+                j = pidx[k]
+                gx0 = max(np.int64(pk[j, R_X0]), x0)
+                gx1 = min(np.int64(pk[j, R_X1]), x1)
+                gy0 = max(np.int64(pk[j, R_Y0]), y0)
+                gy1 = min(np.int64(pk[j, R_Y1]), y1)
+                mx = np.float64(pk[j, R_MX])
+                my = np.float64(pk[j, R_MY])
+                ca = np.float64(pk[j, R_CA])
+                cb = np.float64(pk[j, R_CB])
+                cc = np.float64(pk[j, R_CC])
+                o = np.float64(pk[j, R_OP])
+                qmax = np.float64(pk[j, R_QMAX])
+                ea = np.float64(pk[j, R_EA])
+                eb = np.float64(pk[j, R_EB])
+                ec = np.float64(pk[j, R_EC])
+                chord = pk[j, R_CHORD] != 0.0
+                f0 = np.float64(pf[j, 0])
+                f1 = np.float64(pf[j, 1])
+                f2 = np.float64(pf[j, 2])
+                f3 = np.float64(pf[j, 3])
                 if chord:
                     Grow, Erow, Fy = 0.0, 0.0, 0.0
                 else:
@@ -591,7 +660,7 @@ def raster_forward(pk, pf, tile_start, order, bg, width, height, depth_min_alpha
                             acc[q + np.uint64(2)] += f2 * w
                             acc[q + np.uint64(3)] += f3 * w
                             for c in range(4, C):
-                                acc[q + np.uint64(c)] += pf[k, c] * w
+                                acc[q + np.uint64(c)] += pf[j, c] * w
                             T[p] = nt
                             lst[p] = max(lst[p], (k + 1) * (w > 0.0))
                             hit |= w > 0.0
@@ -620,7 +689,7 @@ def raster_forward(pk, pf, tile_start, order, bg, width, height, depth_min_alpha
 
 
 @njit(cache=True, parallel=True, fastmath=FMA)
-def raster_backward(pk, pf, pair_slot, tile_start, order, bg, width, height, depth_min_alpha, g_color, g_depth_raw,
+def raster_backward(pk, pf, pidx, pair_slot, tile_start, order, bg, width, height, depth_min_alpha, g_color, g_depth_raw,
                     g_extras, g_depth, g_alpha, depth_raw, tfinal, last, pg, nworkers):
     """Back-to-front gradients from dL/d(color [H,W,3], depth_raw [H,W], extras [H,W,K], depth [H,W],
     alpha [H,W]) (f32; the depth normalisation of ``raster_forward`` is differentiated here, per pixel).
@@ -680,26 +749,31 @@ def raster_backward(pk, pf, pair_slot, tile_start, order, bg, width, height, dep
                 sl = pair_slot[k]
                 for d in range(D):
                     pg[sl, d] = 0.0
+            _prefetch_pair(pk, pf, pidx, kmax - 1, kmax)
+            _prefetch_pair(pk, pf, pidx, kmax - 2, kmax)
             for k in range(kmax - 1, k0 - 1, -1):
-                gx0 = max(np.int64(pk[k, R_X0]), x0)
-                gx1 = min(np.int64(pk[k, R_X1]), x1)
-                gy0 = max(np.int64(pk[k, R_Y0]), y0)
-                gy1 = min(np.int64(pk[k, R_Y1]), y1)
-                mx = np.float64(pk[k, R_MX])
-                my = np.float64(pk[k, R_MY])
-                ca = np.float64(pk[k, R_CA])
-                cb = np.float64(pk[k, R_CB])
-                cc = np.float64(pk[k, R_CC])
-                o = np.float64(pk[k, R_OP])
-                qmax = np.float64(pk[k, R_QMAX])
-                ea = np.float64(pk[k, R_EA])
-                eb = np.float64(pk[k, R_EB])
-                ec = np.float64(pk[k, R_EC])
-                chord = pk[k, R_CHORD] != 0.0
-                f0 = np.float64(pf[k, 0])
-                f1 = np.float64(pf[k, 1])
-                f2 = np.float64(pf[k, 2])
-                f3 = np.float64(pf[k, 3])
+                if k >= k0 + 2:
+                    _prefetch_pair(pk, pf, pidx, k - 2, kmax)
+                j = pidx[k]
+                gx0 = max(np.int64(pk[j, R_X0]), x0)
+                gx1 = min(np.int64(pk[j, R_X1]), x1)
+                gy0 = max(np.int64(pk[j, R_Y0]), y0)
+                gy1 = min(np.int64(pk[j, R_Y1]), y1)
+                mx = np.float64(pk[j, R_MX])
+                my = np.float64(pk[j, R_MY])
+                ca = np.float64(pk[j, R_CA])
+                cb = np.float64(pk[j, R_CB])
+                cc = np.float64(pk[j, R_CC])
+                o = np.float64(pk[j, R_OP])
+                qmax = np.float64(pk[j, R_QMAX])
+                ea = np.float64(pk[j, R_EA])
+                eb = np.float64(pk[j, R_EB])
+                ec = np.float64(pk[j, R_EC])
+                chord = pk[j, R_CHORD] != 0.0
+                f0 = np.float64(pf[j, 0])
+                f1 = np.float64(pf[j, 1])
+                f2 = np.float64(pf[j, 2])
+                f3 = np.float64(pf[j, 3])
                 if chord:
                     Grow, Erow, Fy = 0.0, 0.0, 0.0
                 else:
@@ -793,7 +867,7 @@ def raster_backward(pk, pf, pair_slot, tile_start, order, bg, width, height, dep
                             gf3 += w * g3
                             for c in range(4, C):
                                 gv = gp[q + np.uint64(c)]
-                                fg += pf[k, c] * gv
+                                fg += pf[j, c] * gv
                                 gf[c] += w * gv
                             dlda = ti * fg - Rr[p] * iom
                             Rr[p] += fg * w
