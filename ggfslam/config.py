@@ -162,7 +162,7 @@ class TrackingConfig(_Section):
     """How many covisible keyframes supply map points to track against."""
     dense_fallback: bool = True
     """Where ORB matching fails (textureless views), estimate the motion by dense RGB-D odometry instead."""
-    dense_guess_below: int = 100
+    dense_guess_below: int = 50
     """With fewer feature inliers than this, also try the dense-odometry pose as the prediction for the local map."""
     dense_link_sigmas: tuple[float, float] = (0.02, 0.03)
     """Rotation (rad) and translation (m) sigmas of the factor tying a dense-odometry keyframe to its reference."""

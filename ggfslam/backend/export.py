@@ -31,7 +31,7 @@ from pathlib import Path
 import gtsam
 import numpy as np
 
-from ggfslam.backend.graph import L, P, X
+from ggfslam.backend.graph import L, P, X, huber_loss, observation_errors
 from ggfslam.backend.slam_map import SlamMap
 from ggfslam.config import BackendConfig, TrackingConfig
 from ggfslam.data.types import Camera
@@ -41,36 +41,6 @@ __all__ = ["FORMAT_VERSION", "graph_to_dict", "write_graph_json", "load_graph_ne
 
 FORMAT_VERSION = "ggfslam-graph/2"  # 2: plane landmarks and plane factors
 MIN_COVISIBILITY = 15  # shared landmarks for a covisibility edge (local BA's min_shared)
-
-
-def huber_loss(norm: np.ndarray, k: float) -> np.ndarray:
-    """GTSAM's Huber loss of whitened residual norms: 0.5 n^2 inside k, k n - 0.5 k^2 outside."""
-    return np.where(norm <= k, 0.5 * norm ** 2, k * norm - 0.5 * k * k)
-
-
-def observation_errors(T_wc: np.ndarray, points: np.ndarray, uv: np.ndarray, depth: np.ndarray,
-                       sigma: np.ndarray, camera: Camera, baseline: float, huber_stereo: float,
-                       huber_mono: float) -> tuple[np.ndarray, np.ndarray]:
-    """GTSAM errors [M] and kernel-free chi2 [M] of M observation factors (stereo where depth > 0, else mono).
-
-    T_wc [M, 4, 4] observing poses, points [M, 3] world landmarks, uv [M, 2] keypoints, depth [M], sigma [M].
-    """
-    R, t = T_wc[:, :3, :3], T_wc[:, :3, 3]
-    q = np.einsum("mji,mj->mi", R, points - t)  # [M, 3] R^T (p - t): the point in the camera frame
-    behind = q[:, 2] <= 0  # GTSAM's cheirality exception: the factor returns a constant 2 fx residual
-    inv_z = 1.0 / np.where(behind, 1.0, q[:, 2])
-    u = camera.cx + camera.fx * q[:, 0] * inv_z
-    v = camera.cy + camera.fy * q[:, 1] * inv_z
-    stereo = depth > 0
-    # virtual right-image coordinate of the measurement and of the prediction (graph.observation_factor)
-    ur_meas = uv[:, 0] - camera.fx * baseline / np.where(stereo, depth, 1.0)
-    ur_pred = u - camera.fx * baseline * inv_z
-    sq = (u - uv[:, 0]) ** 2 + (v - uv[:, 1]) ** 2 + np.where(stereo, (ur_pred - ur_meas) ** 2, 0.0)
-    sq = np.where(behind, np.where(stereo, 3.0, 2.0) * (2.0 * camera.fx) ** 2, sq)
-    chi2 = sq / sigma ** 2
-    norm = np.sqrt(chi2)
-    error = np.where(stereo, huber_loss(norm, huber_stereo), huber_loss(norm, huber_mono))
-    return error, chi2
 
 
 def _key_name(kind: str, i: int) -> str:

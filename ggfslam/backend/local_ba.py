@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from ggfslam.backend.graph import L, P, X, calibrations, is_stereo_factor, observation_factor, whitened_chi2
+from ggfslam.backend.graph import L, P, X, calibrations, observation_errors, observation_factor
 from ggfslam.backend.slam_map import SlamMap
 from ggfslam.config import BackendConfig, TrackingConfig
 from ggfslam.data.types import Camera
@@ -110,14 +110,18 @@ def local_bundle_adjustment(smap: SlamMap, kf_id: int, camera: Camera, tcfg: Tra
     if result is None:  # an indeterminate system (a landmark seen once without depth): keep the old estimate
         return None
     # outliers: whitened error above the chi-square bound, or behind the camera
-    outliers, keep = [], np.ones(len(obs), dtype=bool)
-    for i, ((k, lm, kp), sigma, factor) in enumerate(zip(obs, sigmas, factors)):
-        chi2 = whitened_chi2(factor, result, sigma)
-        bound = bcfg.outlier_chi2_stereo if is_stereo_factor(factor) else bcfg.outlier_chi2_mono
-        p_c = result.atPose3(X(k)).transformTo(result.atPoint3(L(lm)))
-        if chi2 > bound or p_c[2] <= 0:
-            outliers.append((lm, k))
-            keep[i] = False
+    # outliers: whitened error above the chi-square bound, or behind the camera (all observations at once)
+    kf_of = np.array([k for k, _, _ in obs], dtype=np.int64)  # [M]
+    lm_of = np.array([lm for _, lm, _ in obs], dtype=np.int64)  # [M]
+    uv = np.array([feats[k].uv[kp] for k, _, kp in obs]).reshape(-1, 2)  # [M, 2]
+    depth = np.array([feats[k].depth[kp] for k, _, kp in obs])  # [M]
+    T_now = {k: result.atPose3(X(k)).matrix() for k in set(kf_of.tolist())}
+    _, chi2 = observation_errors(np.stack([T_now[k] for k in kf_of]).reshape(-1, 4, 4),
+                                 np.array([result.atPoint3(L(int(lm))) for lm in lm_of]).reshape(-1, 3),
+                                 uv, depth, np.asarray(sigmas), camera, tcfg.virtual_baseline,
+                                 bcfg.huber_stereo, bcfg.huber_mono)
+    keep = chi2 <= np.where(depth > 0, bcfg.outlier_chi2_stereo, bcfg.outlier_chi2_mono)  # [M]
+    outliers = [(int(lm_of[i]), int(kf_of[i])) for i in np.nonzero(~keep)[0]]
     if outliers:
         # optimize again without them: even Huber-weighted, a gross mismatch drags its landmark off (ORB-SLAM does the same)
         clean = gtsam.NonlinearFactorGraph()

@@ -36,6 +36,8 @@ class PlaneDetectionConfig:
     """... growing by this much per metre of depth squared (structured-light noise grows with z^2)."""
     iterations: int = 150
     """RANSAC hypotheses per plane."""
+    score_points: int = 2000
+    """Hypotheses are scored on a random subset of this many points (the winner is refit on all of them)."""
     depth_min: float = 0.2
     """Closest depth used (m)."""
     depth_max: float = 4.0
@@ -86,12 +88,12 @@ def detect_planes(depth: np.ndarray, camera: Camera, cfg: PlaneDetectionConfig |
             break
         n, a = n[good] / norm[good, None], a[good]
         d = -np.einsum("ij,ij->i", n, a)  # [I]
-        dist = np.abs(P @ n.T + d)  # [K, I]
-        counts = (dist < T[:, None]).sum(axis=0)
+        sub = rng.choice(len(P), size=min(len(P), cfg.score_points), replace=False)  # [S]
+        counts = (np.abs(P[sub] @ n.T + d) < T[sub, None]).sum(axis=0)  # [I] inliers among the subset
         best = int(np.argmax(counts))
-        if counts[best] < need:
+        inl = np.abs(P @ n[best] + d[best]) < T
+        if inl.sum() < need:
             break
-        inl = dist[:, best] < T
         for _ in range(2):  # least-squares refit, then re-select inliers
             nn, dd = _fit(P[inl])
             inl = np.abs(P @ nn + dd) < T

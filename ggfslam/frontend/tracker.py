@@ -184,18 +184,15 @@ class OrbTracker:
     def _dense_step(self, frame: Frame, guess: np.ndarray | None = None) -> np.ndarray | None:
         """Pose of the frame by dense RGB-D odometry from the previous frame, or None if it fails.
 
-        Dense alignment converges only near the answer: it starts from no motion and, when given, from a
-        (weak) feature estimate ``guess`` [4, 4] as well, and keeps the result with the larger overlap."""
+        Dense alignment converges only near the answer: it starts from a (weak) feature estimate ``guess``
+        [4, 4] when there is one, else from no motion."""
         if self.last_frame is None:
             return None
-        cur, prev = self.dense.rgbd(frame), self.dense.rgbd(self.last_frame)
-        inits = [np.eye(4)] + ([invert(self.last_T) @ guess] if guess is not None else [])
-        best, best_fit = None, 0.3  # below this overlap the alignment is not trusted
-        for init in inits:
-            ok, T_prev_cur, fitness = self.dense.relative(cur, prev, init)
-            if ok and fitness > best_fit:
-                best, best_fit = T_prev_cur, fitness
-        return None if best is None else self.last_T @ best
+        init = np.eye(4) if guess is None else invert(self.last_T) @ guess
+        ok, T_prev_cur, fitness = self.dense.relative(self.dense.rgbd(frame), self.dense.rgbd(self.last_frame), init)
+        if not ok or fitness < 0.3:  # below this overlap the alignment is not trusted
+            return None
+        return self.last_T @ T_prev_cur
 
     def _new_keyframe(self, frame: Frame, F: Features, T: np.ndarray, lm: np.ndarray, kp: np.ndarray,
                       link: tuple[int, np.ndarray] | None = None) -> KeyFrame:
