@@ -25,7 +25,7 @@ from ggfslam.frontend.matching import match_projected, match_ratio
 from ggfslam.frontend.planes import detect_planes
 from ggfslam.frontend.pose_refine import refine_pose
 from ggfslam.frontend.types import TrackingState, TrackResult
-from ggfslam.geometry.se3 import invert
+from ggfslam.geometry.se3 import invert, make_pose
 
 
 @dataclass
@@ -134,6 +134,26 @@ class OrbTracker:
         if good.sum() < self.cfg.min_matches:
             return None
         return T, lm[inl][good], kp[inl][good]
+
+    def _pnp_last_frame(self, F: Features) -> np.ndarray | None:
+        """Pose [4, 4] from descriptor matches to the previous frame's keypoints with depth (PnP RANSAC), or None.
+
+        With wide baselines in low texture, few map points survive to be matched, while the previous frame's
+        own depth-backed keypoints are many: a pose from them lets the local-map search start near the truth."""
+        last = self.last_features
+        if last is None or self.last_T is None or len(F) < 6:
+            return None
+        has = np.nonzero(last.has_depth)[0]
+        pairs = match_ratio(F.descriptors, last.descriptors[has], self.cfg.match_max_distance, self.cfg.match_ratio)
+        need = max(6, self.cfg.min_matches // 2)
+        if len(pairs) < need:
+            return None
+        X = last.points_cam[has[pairs[:, 1]]] @ self.last_T[:3, :3].T + self.last_T[:3, 3]  # [K, 3] world
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(X, F.uv[pairs[:, 0]], self.camera.K, None, iterationsCount=500,
+                                                 reprojectionError=3.0, confidence=0.999, flags=cv2.SOLVEPNP_EPNP)
+        if not ok or inl is None or len(inl) < need:
+            return None
+        return invert(make_pose(cv2.Rodrigues(rvec)[0], tvec.ravel()))
 
     def _track_local_map(self, F: Features, T: np.ndarray, lm: np.ndarray, kp: np.ndarray):
         """Add matches from the local map (landmarks of keyframes covisible with the current matches), refine."""
@@ -249,6 +269,9 @@ class OrbTracker:
             guess = self._track_motion_model(F)
             if guess is None:
                 guess = self._pnp(F, self.map.keyframes[self.ref_kf])
+            if guess is None:
+                T_last = self._pnp_last_frame(F)
+                guess = None if T_last is None else (T_last, empty, empty)
             if self.dense is not None and (guess is None or len(guess[1]) < self.cfg.dense_guess_below):
                 dense_T = self._dense_step(frame, None if guess is None else guess[0])  # few feature matches: a dense estimate may place the frame better
             tries = [self._track_local_map(F, *guess)] if guess is not None else []

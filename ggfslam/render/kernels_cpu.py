@@ -9,12 +9,16 @@ Pipeline (one render)
    clipped to the image. A conservative screen-space test (2D extent bounded by the largest scale)
    rejects off-screen Gaussians before their covariance is built. Culled: depth outside [near, far],
    opacity < 1/255, non-finite values, empty box. Each Gaussian's result is one 64-byte float32 record.
-2. ``bin_tiles``: compaction, radix sort of the visible Gaussians by view depth, per-tile lists (16x16
-   tiles, depth order inside a tile). Every (tile, Gaussian) pair gets a *copy* of the Gaussian's record
-   and features, stored tile after tile: the rasterizers then read memory sequentially instead of
-   chasing one cache miss per pair (that alone halved the forward pass). Also: each pair's slot in a
-   Gaussian-major order (the backward writes per-pair gradients there, so summing them needs no atomics
-   and no random reads) and per-tile cost estimates.
+2. ``bin_tiles``: compaction, radix sort of the visible Gaussians by view depth (one pass over 64-bit
+   ``depth bits << 32 | index`` keys), depth-ordered copies of their records and features (``srec``,
+   ``sfeat``; a parallel gather with software prefetch), per-tile lists (16x16 tiles, depth order inside a
+   tile) that hold each pair's depth rank (``pidx``, 4 bytes a pair). The rasterizers read a pair's record
+   through ``pidx`` and prefetch the records of the pairs two steps ahead: the depth-ordered records are
+   small (Nv x 64 bytes) and the prefetch hides most cache misses, so this is faster overall than copying a
+   64+16-byte record per pair (measured, 100k Gaussians, render + backward: ~8 % faster at 320x240 and
+   640x480; without the prefetch the indirect reads made the rasterizers ~30 % slower). Also: each pair's slot in a Gaussian-major order (the backward writes
+   per-pair gradients there, so summing them needs no atomics and no random reads) and per-tile cost
+   estimates.
 3. Scheduling: every parallel kernel runs one ``prange`` iteration per worker thread, and the workers pull
    work items (tiles by decreasing estimated cost, rows, or chunks of Gaussians) from an atomic counter
    (``_fetch_add``). numba's OpenMP layer splits a ``prange`` statically; with another busy process on
@@ -61,10 +65,10 @@ if not os.environ.get("NUMBA_CACHE_DIR"):
 
 import numba
 import numpy as np
+from llvmlite import ir
 from numba import njit, prange, types
 from numba.core import cgutils
 from numba.extending import intrinsic
-from llvmlite import ir
 
 if not numba.config.CACHE_DIR:  # numba was imported before the variable was set: point it there anyway
     numba.config.CACHE_DIR = os.environ["NUMBA_CACHE_DIR"]
@@ -540,7 +544,8 @@ def _pair_start(mx, my, ca, cb, cc, gx0, gy0):
 @njit(cache=True, parallel=True, fastmath=FMA)
 def raster_forward(pk, pf, pidx, tile_start, order, bg, width, height, depth_min_alpha, color, depth_raw, extras, depth,
                    tfinal, last, work_bwd, nworkers):
-    """Front-to-back compositing of the pairs (pk, pf) of ``bin_tiles``. Writes color [H,W,3] (plus bg),
+    """Front-to-back compositing of the pairs of ``bin_tiles`` (pk = srec, pf = sfeat: depth-ordered records and
+    features; pair k reads row pidx[k]). Writes color [H,W,3] (plus bg),
     depth_raw [H,W], extras [H,W,K], depth [H,W] (= depth_raw / alpha where alpha > depth_min_alpha, else 0,
     alpha = 1 - tfinal), tfinal [H,W] (all f32), last [H,W] i64 (one past the pair index of the pixel's last
     contributor), work_bwd [ntiles] f64 (evaluated pixels up to the tile's last contributor: backward cost)."""
