@@ -197,6 +197,9 @@ class BackendConfig(_Section):
     """Keyframes (most covisible, then the most recent) searched by landmark fusion."""
     fusion_radius: float = 3.0
     """Search radius (px at pyramid level 0) of landmark fusion."""
+    fusion_max_distance: int = 50
+    """Largest Hamming distance (of 256 bits) of a fusion match: stricter than tracking's, since a wrong merge
+    ties two keyframes through a false point (ORB-SLAM uses 50 too)."""
     planes: bool = True
     """Detect the dominant planes of each keyframe's depth (floor, walls, box faces) and add them to bundle
     adjustment as plane landmarks (GTSAM ``OrientedPlane3Factor``): they hold the pose where point tracks are short."""

@@ -88,7 +88,7 @@ class Backend:
             neighbours = self.map.local_keyframes(kf_id, self.bcfg.fusion_neighbours, min_shared=1,
                                                   temporal=self.bcfg.temporal_window)
             added, merged = fuse_neighbours(self.map, kf_id, neighbours[1:], self.camera, self.tcfg,
-                                            self.bcfg.fusion_radius)
+                                            self.bcfg.fusion_radius, self.bcfg.fusion_max_distance)
             self.stats.fused_observations += added
             self.stats.fused_landmarks += merged
         if self.bcfg.planes:

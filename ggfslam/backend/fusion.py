@@ -40,7 +40,8 @@ def project_landmarks(smap: SlamMap, lm: np.ndarray, T_wc: np.ndarray, camera: C
 
 
 def fuse_into(smap: SlamMap, lm: np.ndarray, target_id: int, camera: Camera, cfg: TrackingConfig,
-              radius: float, depth_tol_abs: float = 0.05, depth_tol_rel: float = 0.04) -> tuple[int, int]:
+              radius: float, max_distance: int = 50, depth_tol_abs: float = 0.05,
+              depth_tol_rel: float = 0.04) -> tuple[int, int]:
     """Fuse landmarks ``lm`` into keyframe ``target_id``; returns (observations added, landmarks merged).
 
     Caller holds ``smap.lock``."""
@@ -54,7 +55,7 @@ def fuse_into(smap: SlamMap, lm: np.ndarray, target_id: int, camera: Camera, cfg
     lm, uv, z, level = lm[inside], uv[inside], z[inside], level[inside]
     level_scale = cfg.scale_factor ** np.arange(cfg.n_levels)
     pairs = match_projected(uv, smap.descriptors[lm], level, F.uv, F.descriptors, F.octave, radius, level_scale,
-                            cfg.match_max_distance, cfg.match_ratio)
+                            max_distance, cfg.match_ratio)
     added = merged = 0
     for pi, ki in pairs:
         d = F.depth[ki]
@@ -81,7 +82,7 @@ def fuse_into(smap: SlamMap, lm: np.ndarray, target_id: int, camera: Camera, cfg
 
 
 def fuse_neighbours(smap: SlamMap, kf_id: int, neighbours: list[int], camera: Camera, cfg: TrackingConfig,
-                    radius: float = 3.0) -> tuple[int, int]:
+                    radius: float = 3.0, max_distance: int = 50) -> tuple[int, int]:
     """Fuse keyframe ``kf_id``'s landmarks into its neighbours and theirs into it; returns (added, merged)."""
     added = merged = 0
     with smap.lock:
@@ -91,9 +92,9 @@ def fuse_neighbours(smap: SlamMap, kf_id: int, neighbours: list[int], camera: Ca
         for n in neighbours:
             if n == kf_id or n not in smap.keyframes:
                 continue
-            a, m = fuse_into(smap, own, n, camera, cfg, radius)
+            a, m = fuse_into(smap, own, n, camera, cfg, radius, max_distance)
             added, merged = added + a, merged + m
             own = smap.landmarks_of([kf_id])  # merges may have replaced some of them
         theirs = smap.landmarks_of([n for n in neighbours if n != kf_id])
-        a, m = fuse_into(smap, theirs, kf_id, camera, cfg, radius)
+        a, m = fuse_into(smap, theirs, kf_id, camera, cfg, radius, max_distance)
     return added + a, merged + m
