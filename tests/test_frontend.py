@@ -115,13 +115,13 @@ def test_blank_frames_are_lost_then_relocalized():
     assert m["ate_rmse_cm"] < 1.0, m
 
 
-@pytest.mark.slow
-def test_real_tum_cabinet_keyframes_all_tracked(data_root):
-    """Real Kinect data, 58 wide-baseline keyframes of a plain cabinet: a regression guard (target is 8 cm)."""
+def test_real_tum_cabinet_keyframes_tracked_within_target(data_root):
+    """Real Kinect data, 58 wide-baseline keyframes of a plain cabinet: every frame tracked, ATE <= 8 cm
+    (measured 2.95 cm; Open3D RGB-D odometry gives 42 cm on the same frames)."""
     from ggfslam.data.tum import TUMDataset
 
     ds = TUMDataset(data_root / "tum_fr3_cabinet_kf")
     tracker, results = _track(list(ds), ds.camera, TrackingConfig())
     stamps, poses, lost = tracker.trajectory()
     assert not lost.any()
-    assert trajectory_metrics(stamps, poses, ds.timestamps, ds.gt_poses)["ate_rmse_cm"] < 30.0
+    assert trajectory_metrics(stamps, poses, ds.timestamps, ds.gt_poses)["ate_rmse_cm"] <= 8.0
