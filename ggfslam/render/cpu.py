@@ -99,8 +99,8 @@ class _RasterizeCPU(torch.autograd.Function):
         last = np.empty((H, W), np.int64)
         work_bwd = np.empty(tile_cost.shape[0], np.float64)
         thr = float(settings.depth_min_alpha)
-        kc.raster_forward(srec, sfeat, pidx, tile_start, kc.tile_order(tile_cost), bg, W, H, thr, color, depth_raw, ext, depth,
-                          tfinal, last, work_bwd, nworkers)
+        kc.raster_forward(srec, sfeat, pidx, tile_start, kc.tile_order(tile_cost), bg, W, H, thr, color, depth_raw,
+                          ext, depth, tfinal, last, work_bwd, nworkers)
         info.radii, info.visible = radii, valid
         info.means2d = rec[:, kc.R_MX:kc.R_MY + 1]
         info.depths = rec[:, kc.R_Z]

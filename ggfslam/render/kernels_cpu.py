@@ -16,9 +16,9 @@ Pipeline (one render)
    through ``pidx`` and prefetch the records of the pairs two steps ahead: the depth-ordered records are
    small (Nv x 64 bytes) and the prefetch hides most cache misses, so this is faster overall than copying a
    64+16-byte record per pair (measured, 100k Gaussians, render + backward: ~8 % faster at 320x240 and
-   640x480; without the prefetch the indirect reads made the rasterizers ~30 % slower). Also: each pair's slot in a Gaussian-major order (the backward writes
-   per-pair gradients there, so summing them needs no atomics and no random reads) and per-tile cost
-   estimates.
+   640x480; without the prefetch the indirect reads made the rasterizers ~30 % slower). Also: each pair's
+   slot in a Gaussian-major order (the backward writes per-pair gradients there, so summing them needs no
+   atomics and no random reads) and per-tile cost estimates.
 3. Scheduling: every parallel kernel runs one ``prange`` iteration per worker thread, and the workers pull
    work items (tiles by decreasing estimated cost, rows, or chunks of Gaussians) from an atomic counter
    (``_fetch_add``). numba's OpenMP layer splits a ``prange`` statically; with another busy process on
@@ -694,8 +694,8 @@ def raster_forward(pk, pf, pidx, tile_start, order, bg, width, height, depth_min
 
 
 @njit(cache=True, parallel=True, fastmath=FMA)
-def raster_backward(pk, pf, pidx, pair_slot, tile_start, order, bg, width, height, depth_min_alpha, g_color, g_depth_raw,
-                    g_extras, g_depth, g_alpha, depth_raw, tfinal, last, pg, nworkers):
+def raster_backward(pk, pf, pidx, pair_slot, tile_start, order, bg, width, height, depth_min_alpha, g_color,
+                    g_depth_raw, g_extras, g_depth, g_alpha, depth_raw, tfinal, last, pg, nworkers):
     """Back-to-front gradients from dL/d(color [H,W,3], depth_raw [H,W], extras [H,W,K], depth [H,W],
     alpha [H,W]) (f32; the depth normalisation of ``raster_forward`` is differentiated here, per pixel).
     Writes every row of pg [npairs, 6+C] f32: for pair k, at row pair_slot[k], the sums over its pixels of
