@@ -19,9 +19,10 @@ def lap():
 
 
 def _run(seq, loop_closure: bool):
-    # few features: the lap drifts by about a centimetre, which the loop has to remove
+    # few features and no landmark fusion: the lap drifts by about a centimetre, which the loop has to remove
+    # (with fusion the local map itself re-finds the start of the lap and leaves the loop little to correct)
     tcfg = TrackingConfig(n_features=300)
-    backend = Backend(seq.camera, tcfg, BackendConfig(loop_closure=loop_closure))
+    backend = Backend(seq.camera, tcfg, BackendConfig(loop_closure=loop_closure, fusion=False))
     tracker = OrbTracker(seq.camera, tcfg, backend)
     for i in FRAMES:
         tracker.track(seq[i])
@@ -45,10 +46,10 @@ def test_full_lap_closes_a_correct_loop(lap, runs):
         assert kfs[query].frame_index - kfs[match].frame_index > 500  # a real revisit, not a neighbour
         gt = invert(lap.poses[kfs[match].frame_index]) @ lap.poses[kfs[query].frame_index]
         assert np.linalg.norm((invert(gt) @ T_mq)[:3, 3]) < 0.02
-    assert ate < 1.2
+    assert ate < 1.0
 
 
 def test_loop_closure_lowers_the_trajectory_error(runs):
     (no_loop_backend, ate_without), (_, ate_with) = runs[False], runs[True]
     assert not no_loop_backend.map.loops
-    assert ate_with < 0.9 * ate_without, (ate_with, ate_without)  # measured: 1.00 vs 1.24 cm
+    assert ate_with < 0.9 * ate_without, (ate_with, ate_without)  # measured: 0.86 vs 1.01 cm
