@@ -203,6 +203,9 @@ class BackendConfig(_Section):
     planes: bool = True
     """Detect the dominant planes of each keyframe's depth (floor, walls, box faces) and add them to bundle
     adjustment as plane landmarks (GTSAM ``OrientedPlane3Factor``): they hold the pose where point tracks are short."""
+    plane_fixed_observers: int = 6
+    """Local bundle adjustment holds each plane with at most this many fixed keyframes outside its window (spread
+    over the plane's history), so a floor seen by every keyframe does not bring the whole history into each BA."""
     plane_sigmas: tuple[float, float] = (0.02, 0.02)
     """Noise of a plane observation: normal direction (rad) and distance (m)."""
     plane_match_deg: float = 10.0

@@ -168,3 +168,23 @@ def test_planes_confirm_only_the_right_loop_pose():
     assert not planes_agree(turned, planes_q, planes_m, cfg)
     # one plane (or two parallel ones) leaves degrees of freedom unchecked: not enough
     assert not planes_agree(T_mq, planes_q[:1], planes_m[:1], cfg)
+
+
+def test_bundle_adjustment_holds_a_plane_with_few_fixed_observers():
+    # a floor seen by 30 older keyframes: only plane_fixed_observers of them enter the local BA
+    rng = np.random.default_rng(4)
+    smap, truth, pts = _build_map(rng)
+    cfg = BackendConfig(window=8, iterations=20, planes=True, plane_fixed_observers=6)
+    for i in range(30):
+        T = make_pose(Rotation.from_euler("y", i, degrees=True).as_matrix(), [0.05 * i, 0.0, -1.0])
+        _plane_keyframe(smap, 100 + i, T, [FLOOR_W])
+        associate_planes(smap, 100 + i, cfg)
+    for k in range(4):
+        smap.keyframes[k].meta["planes"] = [Plane(plane_to_camera(FLOOR_W, truth[k]), 1000, 0.002)]
+        associate_planes(smap, k, cfg)
+    assert list(smap.planes) == [0] and len(smap.plane_observations[0]) == 34
+    smap.keyframes[3].T_wc = truth[3] @ make_pose(Rotation.from_euler("z", 1.0, degrees=True).as_matrix(), [0, 0, 0])
+    stats = local_bundle_adjustment(smap, 3, CAM, TrackingConfig(), cfg)
+    assert stats is not None and stats.plane_factors == 4 + 6
+    d = invert(truth[3]) @ smap.keyframes[3].T_wc
+    assert np.linalg.norm(d[:3, 3]) < 1e-3 and Rotation.from_matrix(d[:3, :3]).magnitude() < 1e-3

@@ -38,6 +38,7 @@ class BAStats:
     error_before: float
     error_after: float
     seconds: float
+    plane_factors: int = 0  # plane observations in the graph
 
 
 def local_bundle_adjustment(smap: SlamMap, kf_id: int, camera: Camera, tcfg: TrackingConfig,
@@ -55,10 +56,18 @@ def local_bundle_adjustment(smap: SlamMap, kf_id: int, camera: Camera, tcfg: Tra
         plane_obs = []  # (kf, plane id, camera coefficients [4])
         if bcfg.planes:
             pids = {p for k in window for p in smap.keyframes[k].meta.get("plane_ids", [])}
+            in_window = set(window)
             for pid in sorted(pids):
-                for k, z in smap.plane_observations[pid].items():
-                    if k in smap.keyframes:
-                        plane_obs.append((k, pid, z.copy()))
+                seen = [k for k in sorted(smap.plane_observations[pid]) if k in smap.keyframes]
+                outside = [k for k in seen if k not in in_window]
+                # a floor seen by every keyframe would put the whole history into each local BA: hold the plane
+                # with a few fixed observers spread over its history (the first one anchors it, the last ones
+                # keep it locally consistent)
+                if len(outside) > bcfg.plane_fixed_observers:
+                    pick = np.linspace(0, len(outside) - 1, bcfg.plane_fixed_observers).round().astype(int)
+                    outside = [outside[i] for i in np.unique(pick)]
+                for k in sorted(set(outside) | (in_window & set(seen))):
+                    plane_obs.append((k, pid, smap.plane_observations[pid][k].copy()))
         planes_w = {pid: smap.planes[pid].copy() for _, pid, _ in plane_obs}
         observers = {k for k, _, _ in obs} | {k for k, _, _ in plane_obs}
         fixed = observers - set(window)
@@ -145,4 +154,4 @@ def local_bundle_adjustment(smap: SlamMap, kf_id: int, camera: Camera, tcfg: Tra
         for pid in planes_w:
             smap.planes[pid] = result.atOrientedPlane3(P(pid)).planeCoefficients()
     return BAStats(len(window), len(fixed), len(lms), len(obs), len(outliers), err0, err1,
-                   time.perf_counter() - t0)
+                   time.perf_counter() - t0, len(plane_obs))
