@@ -529,6 +529,21 @@ def _row_span(mx, ca, cb, cc, qmax, dy, gx0, gx1):
     return x0, x1, G, E
 
 
+@njit(cache=True, inline="always")
+def _load_pair(pk, pf, j, x0, x1, y0, y1):
+    """The record of sorted pair j (its pixel box clipped to the tile [x0, x1] x [y0, y1]) as float64 scalars:
+    (gx0, gx1, gy0, gy1, mean x, mean y, conic a, b, c, opacity, qmax, ea, eb, ec, chord flag, f0..f3); the
+    forward and backward rasterizers read pairs identically through this."""
+    return (max(np.int64(pk[j, R_X0]), x0), min(np.int64(pk[j, R_X1]), x1),
+            max(np.int64(pk[j, R_Y0]), y0), min(np.int64(pk[j, R_Y1]), y1),
+            np.float64(pk[j, R_MX]), np.float64(pk[j, R_MY]),
+            np.float64(pk[j, R_CA]), np.float64(pk[j, R_CB]), np.float64(pk[j, R_CC]),
+            np.float64(pk[j, R_OP]), np.float64(pk[j, R_QMAX]),
+            np.float64(pk[j, R_EA]), np.float64(pk[j, R_EB]), np.float64(pk[j, R_EC]),
+            pk[j, R_CHORD] != 0.0,
+            np.float64(pf[j, 0]), np.float64(pf[j, 1]), np.float64(pf[j, 2]), np.float64(pf[j, 3]))
+
+
 @njit(cache=True, inline="always", fastmath=FMA)
 def _pair_start(mx, my, ca, cb, cc, gx0, gy0):
     """Recurrence mode: at pixel (gx0, gy0) returns G = exp(power), the x-step factor
@@ -585,25 +600,8 @@ def raster_forward(pk, pf, pidx, tile_start, order, bg, width, height, depth_min
             for k in range(k0, kend):
                 _prefetch_pair(pk, pf, pidx, k + 2, kend)
                 j = pidx[k]
-                gx0 = max(np.int64(pk[j, R_X0]), x0)
-                gx1 = min(np.int64(pk[j, R_X1]), x1)
-                gy0 = max(np.int64(pk[j, R_Y0]), y0)
-                gy1 = min(np.int64(pk[j, R_Y1]), y1)
-                mx = np.float64(pk[j, R_MX])
-                my = np.float64(pk[j, R_MY])
-                ca = np.float64(pk[j, R_CA])
-                cb = np.float64(pk[j, R_CB])
-                cc = np.float64(pk[j, R_CC])
-                o = np.float64(pk[j, R_OP])
-                qmax = np.float64(pk[j, R_QMAX])
-                ea = np.float64(pk[j, R_EA])
-                eb = np.float64(pk[j, R_EB])
-                ec = np.float64(pk[j, R_EC])
-                chord = pk[j, R_CHORD] != 0.0
-                f0 = np.float64(pf[j, 0])
-                f1 = np.float64(pf[j, 1])
-                f2 = np.float64(pf[j, 2])
-                f3 = np.float64(pf[j, 3])
+                (gx0, gx1, gy0, gy1, mx, my, ca, cb, cc, o, qmax, ea, eb, ec, chord,
+                 f0, f1, f2, f3) = _load_pair(pk, pf, j, x0, x1, y0, y1)
                 if chord:
                     Grow, Erow, Fy = 0.0, 0.0, 0.0
                 else:
@@ -760,25 +758,8 @@ def raster_backward(pk, pf, pidx, pair_slot, tile_start, order, bg, width, heigh
                 if k >= k0 + 2:
                     _prefetch_pair(pk, pf, pidx, k - 2, kmax)
                 j = pidx[k]
-                gx0 = max(np.int64(pk[j, R_X0]), x0)
-                gx1 = min(np.int64(pk[j, R_X1]), x1)
-                gy0 = max(np.int64(pk[j, R_Y0]), y0)
-                gy1 = min(np.int64(pk[j, R_Y1]), y1)
-                mx = np.float64(pk[j, R_MX])
-                my = np.float64(pk[j, R_MY])
-                ca = np.float64(pk[j, R_CA])
-                cb = np.float64(pk[j, R_CB])
-                cc = np.float64(pk[j, R_CC])
-                o = np.float64(pk[j, R_OP])
-                qmax = np.float64(pk[j, R_QMAX])
-                ea = np.float64(pk[j, R_EA])
-                eb = np.float64(pk[j, R_EB])
-                ec = np.float64(pk[j, R_EC])
-                chord = pk[j, R_CHORD] != 0.0
-                f0 = np.float64(pf[j, 0])
-                f1 = np.float64(pf[j, 1])
-                f2 = np.float64(pf[j, 2])
-                f3 = np.float64(pf[j, 3])
+                (gx0, gx1, gy0, gy1, mx, my, ca, cb, cc, o, qmax, ea, eb, ec, chord,
+                 f0, f1, f2, f3) = _load_pair(pk, pf, j, x0, x1, y0, y1)
                 if chord:
                     Grow, Erow, Fy = 0.0, 0.0, 0.0
                 else:
