@@ -111,9 +111,9 @@ def _fetch_add(typingctx, counter, val):
     return sig, codegen
 
 
-@intrinsic
-def _prefetch(typingctx, arr, row):
-    """Software prefetch (read, keep in all cache levels) of ``arr[row, 0]`` (2-D C-contiguous array)."""
+def _prefetch_typer(arr, row, last_column: bool):
+    """Signature and codegen of a software prefetch (read, keep in all cache levels) of ``arr[row, 0]`` or, with
+    ``last_column``, ``arr[row, -1]`` (2-D C-contiguous array); None for other argument types."""
     if not (isinstance(arr, types.Array) and arr.ndim == 2 and isinstance(row, types.Integer)):
         return None
     sig = types.void(arr, row)
@@ -121,9 +121,12 @@ def _prefetch(typingctx, arr, row):
     def codegen(context, builder, signature, args):
         arrty = signature.args[0]
         ary = context.make_array(arrty)(context, builder, args[0])
-        zero = context.get_constant(types.intp, 0)
+        if last_column:
+            col = builder.sub(cgutils.unpack_tuple(builder, ary.shape, 2)[1], context.get_constant(types.intp, 1))
+        else:
+            col = context.get_constant(types.intp, 0)
         r = context.cast(builder, args[1], signature.args[1], types.intp)
-        ptr = cgutils.get_item_pointer(context, builder, arrty, ary, [r, zero], wraparound=False)
+        ptr = cgutils.get_item_pointer(context, builder, arrty, ary, [r, col], wraparound=False)
         i8p = ir.IntType(8).as_pointer()
         i32 = ir.IntType(32)
         fnty = ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32])
@@ -132,30 +135,18 @@ def _prefetch(typingctx, arr, row):
         return context.get_dummy_value()
 
     return sig, codegen
+
+
+@intrinsic
+def _prefetch(typingctx, arr, row):
+    """Software prefetch of ``arr[row, 0]`` (2-D C-contiguous array)."""
+    return _prefetch_typer(arr, row, last_column=False)
 
 
 @intrinsic
 def _prefetch_last(typingctx, arr, row):
     """Software prefetch of ``arr[row, -1]`` (2-D C-contiguous array)."""
-    if not (isinstance(arr, types.Array) and arr.ndim == 2 and isinstance(row, types.Integer)):
-        return None
-    sig = types.void(arr, row)
-
-    def codegen(context, builder, signature, args):
-        arrty = signature.args[0]
-        ary = context.make_array(arrty)(context, builder, args[0])
-        shape = cgutils.unpack_tuple(builder, ary.shape, 2)
-        last = builder.sub(shape[1], context.get_constant(types.intp, 1))
-        r = context.cast(builder, args[1], signature.args[1], types.intp)
-        ptr = cgutils.get_item_pointer(context, builder, arrty, ary, [r, last], wraparound=False)
-        i8p = ir.IntType(8).as_pointer()
-        i32 = ir.IntType(32)
-        fnty = ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32])
-        fn = cgutils.get_or_insert_function(builder.module, fnty, "llvm.prefetch.p0")
-        builder.call(fn, [builder.bitcast(ptr, i8p), i32(0), i32(3), i32(1)])
-        return context.get_dummy_value()
-
-    return sig, codegen
+    return _prefetch_typer(arr, row, last_column=True)
 
 
 PREFETCH_AHEAD = 8  # records prefetched ahead in gathers
