@@ -4,9 +4,10 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from ggfslam.geometry.depth import backproject, normals_from_depth, project, transform_points
+from ggfslam.geometry.pnp import pnp_ransac
 from ggfslam.geometry.se3 import (
-    from_gtsam, interpolate_poses, invert, look_at, make_pose, pose_from_tum, pose_to_tum, rigidity_error, se3_exp,
-    to_gtsam,
+    from_gtsam, interpolate_poses, invert, look_at, make_pose, pose_from_tum, pose_to_tum, rigidity_error,
+    rotation_angle, se3_exp, to_gtsam,
 )
 
 
@@ -82,3 +83,19 @@ def test_backproject_project_round_trip_and_plane_normals():
     assert np.all(n[0] == 0) and np.all(n[:, -1] == 0)
     T = make_pose(np.eye(3), [1, 2, 3])
     np.testing.assert_allclose(transform_points(T, P)[0, 0], P[0, 0] + [1, 2, 3])
+
+
+def test_rotation_angle_and_pnp_ransac_recover_a_known_pose():
+    assert abs(rotation_angle(Rotation.from_rotvec([0.1, -0.2, 0.3]).as_matrix()) - np.linalg.norm([0.1, -0.2, 0.3])) < 1e-12
+    assert rotation_angle(np.eye(3)) == 0.0
+    rng = np.random.default_rng(0)
+    T_wc = make_pose(Rotation.from_euler("xyz", [5, -10, 20], degrees=True).as_matrix(), [0.3, -0.1, 0.2])
+    p_c = np.column_stack([rng.uniform(-1, 1, 60), rng.uniform(-0.7, 0.7, 60), rng.uniform(2, 4, 60)])
+    p_w = p_c @ T_wc[:3, :3].T + T_wc[:3, 3]
+    K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+    uv = p_c[:, :2] / p_c[:, 2:] * 500.0 + [320, 240]
+    uv[:10] += 40.0  # outliers
+    T, inliers = pnp_ransac(p_w, uv, K, iterations=200, reprojection_px=2.0)
+    assert set(range(10, 60)) <= set(inliers.tolist()) and not set(range(10)) & set(inliers.tolist())
+    d = invert(T_wc) @ T
+    assert np.linalg.norm(d[:3, 3]) < 1e-6 and rotation_angle(d[:3, :3]) < 1e-6

@@ -20,7 +20,8 @@ import numpy as np
 
 from ggfslam.backend.place_recognition import BowVector, KeyframeDatabase, Vocabulary, hamming_knn2
 from ggfslam.data.types import Camera
-from ggfslam.geometry.se3 import invert, make_pose, se3_exp
+from ggfslam.geometry.pnp import pnp_ransac
+from ggfslam.geometry.se3 import invert, se3_exp
 
 __all__ = ["LoopClosureConfig", "LoopResult", "LoopDetector", "PairVerification", "match_descriptors",
            "verify_loop_pair"]
@@ -333,15 +334,13 @@ def _ransac_pnp(camera: Camera, uv_q, desc_q, pts_q, desc_m, pts_m, cfg: LoopClo
     if camera.distortion:  # work on ideal pinhole pixels from here on
         img = cv2.undistortPoints(img.reshape(-1, 1, 2), camera.K, np.asarray(camera.distortion, np.float64),
                                   P=camera.K).reshape(-1, 2)
-    ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, camera.K, None, iterationsCount=cfg.ransac_iterations,
-                                             reprojectionError=cfg.ransac_reproj_px,
-                                             confidence=cfg.ransac_confidence, flags=cv2.SOLVEPNP_EPNP)
-    if not ok or inl is None or len(inl) < min_inliers:
+    found = pnp_ransac(obj, img, camera.K, cfg.ransac_iterations, cfg.ransac_reproj_px, cfg.ransac_confidence)
+    if found is None or len(found[1]) < min_inliers:
         return None
+    T_mq, inl = found
     keep = np.zeros(len(pairs), bool)
-    keep[inl.reshape(-1)] = True
+    keep[inl] = True
     q3d = pts_q[pairs[:, 0]]  # [K, 3] the query's own back-projections (NaN without depth)
-    T_mq = invert(make_pose(cv2.Rodrigues(rvec)[0], tvec.reshape(3)))
     return pairs, obj, img, q3d, _valid_points(q3d), keep, T_mq
 
 

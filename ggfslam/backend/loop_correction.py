@@ -6,7 +6,7 @@ import numpy as np
 from ggfslam.backend.loop_closure import LoopResult
 from ggfslam.backend.pose_graph import PoseEdge, correct_points, optimize_pose_graph
 from ggfslam.backend.slam_map import SlamMap
-from ggfslam.geometry.se3 import invert
+from ggfslam.geometry.se3 import invert, rotation_angle
 
 # a loop's own covariance can be 1-2 mm: floor it so a slightly optimistic loop cannot tear the graph
 _LOOP_FLOOR_ROT, _LOOP_FLOOR_TRANS = np.radians(0.5), 0.01
@@ -40,7 +40,7 @@ def _relative_edge(poses: dict[int, np.ndarray], a: int, b: int, kind: str, shar
     """An edge holding keyframes a and b at their current relative pose; its sigmas grow with the motion and
     shrink with the landmarks both see (a pair tied only by dense odometry is the likeliest place of drift)."""
     T = invert(poses[a]) @ poses[b]
-    angle = float(np.arccos(np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+    angle = rotation_angle(T[:3, :3])
     dist = float(np.linalg.norm(T[:3, 3]))
     weak = float(np.clip(np.sqrt(_COVIS_MIN_SHARED / max(shared, 1)), 1.0, 5.0))
     return PoseEdge(a, b, T, weak * (_ODOM_ROT + _ODOM_SHARE * angle), weak * (_ODOM_TRANS + _ODOM_SHARE * dist),

@@ -11,7 +11,6 @@ from __future__ import annotations
 from collections import Counter
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from ggfslam.backend.backend import Backend
@@ -25,7 +24,8 @@ from ggfslam.frontend.matching import match_projected, match_ratio
 from ggfslam.frontend.planes import detect_planes
 from ggfslam.frontend.pose_refine import refine_pose
 from ggfslam.frontend.types import TrackingState, TrackResult
-from ggfslam.geometry.se3 import invert, make_pose
+from ggfslam.geometry.pnp import pnp_ransac
+from ggfslam.geometry.se3 import invert, rotation_angle
 
 
 @dataclass
@@ -122,15 +122,11 @@ class OrbTracker:
             X = self.map.positions[lm].copy()
         if len(lm) < self.cfg.min_matches:
             return None
-        ok, rvec, tvec, inl = cv2.solvePnPRansac(X, F.uv[kp], self.camera.K, None, iterationsCount=200,
-                                                 reprojectionError=4.0, confidence=0.999, flags=cv2.SOLVEPNP_EPNP)
-        if not ok or inl is None or len(inl) < self.cfg.min_matches:
+        found = pnp_ransac(X, F.uv[kp], self.camera.K, iterations=200, reprojection_px=4.0)
+        if found is None or len(found[1]) < self.cfg.min_matches:
             return None
-        T_cw = np.eye(4)
-        T_cw[:3, :3] = cv2.Rodrigues(rvec)[0]
-        T_cw[:3, 3] = tvec.ravel()
-        inl = inl.ravel()
-        T, good = self._refine(invert(T_cw), F, lm[inl], kp[inl])
+        T0, inl = found
+        T, good = self._refine(T0, F, lm[inl], kp[inl])
         if good.sum() < self.cfg.min_matches:
             return None
         return T, lm[inl][good], kp[inl][good]
@@ -149,11 +145,10 @@ class OrbTracker:
         if len(pairs) < need:
             return None
         X = last.points_cam[has[pairs[:, 1]]] @ self.last_T[:3, :3].T + self.last_T[:3, 3]  # [K, 3] world
-        ok, rvec, tvec, inl = cv2.solvePnPRansac(X, F.uv[pairs[:, 0]], self.camera.K, None, iterationsCount=500,
-                                                 reprojectionError=3.0, confidence=0.999, flags=cv2.SOLVEPNP_EPNP)
-        if not ok or inl is None or len(inl) < need:
+        found = pnp_ransac(X, F.uv[pairs[:, 0]], self.camera.K, iterations=500, reprojection_px=3.0)
+        if found is None or len(found[1]) < need:
             return None
-        return invert(make_pose(cv2.Rodrigues(rvec)[0], tvec.ravel()))
+        return found[0]
 
     def _track_local_map(self, F: Features, T: np.ndarray, lm: np.ndarray, kp: np.ndarray):
         """Add matches from the local map (landmarks of keyframes covisible with the current matches), refine."""
@@ -251,7 +246,7 @@ class OrbTracker:
         if n_tracked < self.cfg.keyframe_tracked_ratio * ref_tracked:
             return True
         rel = invert(ref.T_wc) @ T
-        angle = np.degrees(np.arccos(np.clip((np.trace(rel[:3, :3]) - 1) / 2, -1, 1)))
+        angle = np.degrees(rotation_angle(rel[:3, :3]))
         return bool(np.linalg.norm(rel[:3, 3]) > self.cfg.keyframe_translation or angle > self.cfg.keyframe_rotation_deg)
 
     # --- main entry -----------------------------------------------------------------------------------

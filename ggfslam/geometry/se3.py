@@ -22,6 +22,11 @@ def make_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return T
 
 
+def rotation_angle(R: np.ndarray) -> float:
+    """Angle (rad) of a rotation matrix [3, 3]."""
+    return float(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
+
+
 def invert(T: np.ndarray) -> np.ndarray:
     """Inverse of a rigid transform [4, 4] (or a stack [N, 4, 4])."""
     T = np.asarray(T, dtype=np.float64)
