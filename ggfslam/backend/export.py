@@ -31,7 +31,7 @@ from pathlib import Path
 import gtsam
 import numpy as np
 
-from ggfslam.backend.graph import L, P, X, huber_loss, observation_errors
+from ggfslam.backend.graph import L, P, X, huber_loss, observation_errors, odometry_link_factor, plane_factor
 from ggfslam.backend.slam_map import SlamMap
 from ggfslam.config import BackendConfig, TrackingConfig
 from ggfslam.data.types import Camera
@@ -103,46 +103,30 @@ def graph_to_dict(smap: SlamMap, camera: Camera, tcfg: TrackingConfig, bcfg: Bac
             "sigma": float(sigma[i]),
             "error": float(error[i]), "chi2": float(chi2[i]),
         })
-    # dense-odometry links: few, so GTSAM evaluates them directly (same factor as local_ba builds)
-    s_rot, s_trans = tcfg.dense_link_sigmas
-    link_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([s_rot] * 3 + [s_trans] * 3))
+    # links, loops and plane observations are few: GTSAM evaluates them directly (the factors local_ba builds)
+    values = gtsam.Values()
+    for k, T in poses.items():
+        values.insert(X(k), gtsam.Pose3(T))
+    for pid, pw in planes.items():
+        values.insert(P(pid), gtsam.OrientedPlane3(*pw))
+
+    def pose_pair(kind: str, other: int, this: int, T_other_this: np.ndarray, factor) -> dict:
+        err = float(factor.error(values))
+        return {"type": kind, "keys": [_key_name("x", other), _key_name("x", this)], "gtsam_keys": [X(other), X(this)],
+                "kf": int(this), "other_kf": int(other), "T_other_this": np.asarray(T_other_this).tolist(),
+                "error": err, "chi2": 2.0 * err}
+
     for k, other, T_other_k in links:
-        if other not in poses:
-            continue
-        f = gtsam.BetweenFactorPose3(X(other), X(k), gtsam.Pose3(T_other_k), link_noise)
-        values = gtsam.Values()
-        values.insert(X(other), gtsam.Pose3(poses[other]))
-        values.insert(X(k), gtsam.Pose3(poses[k]))
-        err = float(f.error(values))
-        factors.append({
-            "type": "odometry_link", "keys": [_key_name("x", other), _key_name("x", k)],
-            "gtsam_keys": [X(other), X(k)], "kf": k, "other_kf": int(other),
-            "T_other_this": np.asarray(T_other_k).tolist(), "error": err, "chi2": 2.0 * err,
-        })
-
+        if other in poses:
+            factors.append(pose_pair("odometry_link", other, k, T_other_k,
+                                     odometry_link_factor(other, k, T_other_k, tcfg.dense_link_sigmas)))
     for match, query, T_mq, cov in loops:
-        if match not in poses or query not in poses:
-            continue
-        f = gtsam.BetweenFactorPose3(X(match), X(query), gtsam.Pose3(T_mq), gtsam.noiseModel.Gaussian.Covariance(cov))
-        values = gtsam.Values()
-        values.insert(X(match), gtsam.Pose3(poses[match]))
-        values.insert(X(query), gtsam.Pose3(poses[query]))
-        err = float(f.error(values))
-        factors.append({
-            "type": "loop", "keys": [_key_name("x", match), _key_name("x", query)],
-            "gtsam_keys": [X(match), X(query)], "kf": int(query), "other_kf": int(match),
-            "T_other_this": np.asarray(T_mq).tolist(), "error": err, "chi2": 2.0 * err,
-        })
-
-    # plane observations (GTSAM OrientedPlane3Factor, as local_ba builds them)
-    s_n, s_d = bcfg.plane_sigmas
-    plane_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([s_n, s_n, s_d]))
+        if match in poses and query in poses:
+            noise = gtsam.noiseModel.Gaussian.Covariance(cov)
+            factors.append(pose_pair("loop", match, query, T_mq,
+                                     gtsam.BetweenFactorPose3(X(match), X(query), gtsam.Pose3(T_mq), noise)))
     for k, pid, z in plane_obs:
-        f = gtsam.OrientedPlane3Factor(z, plane_noise, X(k), P(pid))
-        values = gtsam.Values()
-        values.insert(X(k), gtsam.Pose3(poses[k]))
-        values.insert(P(pid), gtsam.OrientedPlane3(*planes[pid]))
-        err = float(f.error(values))
+        err = float(plane_factor(k, pid, z, bcfg.plane_sigmas).error(values))
         factors.append({
             "type": "plane", "keys": [_key_name("x", k), _key_name("p", pid)], "gtsam_keys": [X(k), P(pid)],
             "kf": int(k), "plane": int(pid), "measured": z.tolist(), "error": err, "chi2": 2.0 * err,

@@ -13,7 +13,8 @@ from gtsam.symbol_shorthand import L, P, X
 
 from ggfslam.data.types import Camera
 
-__all__ = ["L", "P", "X", "huber_loss", "observation_errors", "calibrations", "observation_factor", "is_stereo_factor", "whitened_chi2"]
+__all__ = ["L", "P", "X", "huber_loss", "observation_errors", "calibrations", "observation_factor", "whitened_chi2",
+           "odometry_link_factor", "plane_factor"]
 
 
 def calibrations(camera: Camera, baseline: float) -> tuple[gtsam.Cal3_S2, gtsam.Cal3_S2Stereo]:
@@ -38,9 +39,20 @@ def observation_factor(
     return gtsam.GenericProjectionFactorCal3_S2(gtsam.Point2(uv[0], uv[1]), noise, X(kf_id), L(lm_id), mono)
 
 
-def is_stereo_factor(factor) -> bool:
-    """True for an RGB-D (virtual stereo) observation factor."""
-    return isinstance(factor, gtsam.GenericStereoFactor3D)
+def odometry_link_factor(other_id: int, kf_id: int, T_other_kf: np.ndarray, sigmas: tuple[float, float]):
+    """Between factor tying keyframe ``kf_id`` to ``other_id`` at the dense-odometry relative pose T_other_kf
+    [4, 4]; ``sigmas`` = (rotation rad, translation m), as ``tracking.dense_link_sigmas``."""
+    s_rot, s_trans = sigmas
+    noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([s_rot] * 3 + [s_trans] * 3))
+    return gtsam.BetweenFactorPose3(X(other_id), X(kf_id), gtsam.Pose3(T_other_kf), noise)
+
+
+def plane_factor(kf_id: int, plane_id: int, measured: np.ndarray, sigmas: tuple[float, float]):
+    """Observation of plane landmark ``plane_id`` by keyframe ``kf_id``: camera-frame coefficients [4] (n, d);
+    ``sigmas`` = (normal rad, distance m), as ``backend.plane_sigmas``."""
+    s_n, s_d = sigmas
+    noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([s_n, s_n, s_d]))
+    return gtsam.OrientedPlane3Factor(np.asarray(measured, np.float64), noise, X(kf_id), P(plane_id))
 
 
 def whitened_chi2(factor, values: gtsam.Values, sigma: float) -> float:

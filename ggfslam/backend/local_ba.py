@@ -7,7 +7,9 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from ggfslam.backend.graph import L, P, X, calibrations, observation_errors, observation_factor
+from ggfslam.backend.graph import (
+    L, P, X, calibrations, observation_errors, observation_factor, odometry_link_factor, plane_factor,
+)
 from ggfslam.backend.slam_map import SlamMap
 from ggfslam.config import BackendConfig, TrackingConfig
 from ggfslam.data.types import Camera
@@ -95,16 +97,12 @@ def local_bundle_adjustment(smap: SlamMap, kf_id: int, camera: Camera, tcfg: Tra
             graph.add(gtsam.PriorFactorPose3(X(k), gtsam.Pose3(T), _FIXED_NOISE))
     for lm, p in zip(lms, positions):
         values.insert(L(int(lm)), gtsam.Point3(*p))
-    s_rot, s_trans = tcfg.dense_link_sigmas
-    link_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([s_rot] * 3 + [s_trans] * 3))
     for k, other, T_other_k in links:
-        graph.add(gtsam.BetweenFactorPose3(X(other), X(k), gtsam.Pose3(T_other_k), link_noise))
-    s_n, s_d = bcfg.plane_sigmas
-    plane_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([s_n, s_n, s_d]))
+        graph.add(odometry_link_factor(other, k, T_other_k, tcfg.dense_link_sigmas))
     for pid, pw in planes_w.items():
         values.insert(P(pid), gtsam.OrientedPlane3(*pw))
     for k, pid, z in plane_obs:
-        graph.add(gtsam.OrientedPlane3Factor(z, plane_noise, X(k), P(pid)))
+        graph.add(plane_factor(k, pid, z, bcfg.plane_sigmas))
     sigmas, factors = [], []
     for k, lm, kp in obs:
         f = feats[k]
@@ -118,7 +116,6 @@ def local_bundle_adjustment(smap: SlamMap, kf_id: int, camera: Camera, tcfg: Tra
     result = _optimize(graph, values, bcfg.iterations)
     if result is None:  # an indeterminate system (a landmark seen once without depth): keep the old estimate
         return None
-    # outliers: whitened error above the chi-square bound, or behind the camera
     # outliers: whitened error above the chi-square bound, or behind the camera (all observations at once)
     kf_of = np.array([k for k, _, _ in obs], dtype=np.int64)  # [M]
     lm_of = np.array([lm for _, lm, _ in obs], dtype=np.int64)  # [M]
