@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from ggfslam.backend.plane_map import plane_to_world
 from ggfslam.backend.place_recognition import BowVector, KeyframeDatabase, Vocabulary, hamming_knn2
 from ggfslam.data.types import Camera
 from ggfslam.geometry.pnp import pnp_ransac
@@ -277,12 +278,11 @@ def matching_planes(T_mq: np.ndarray, planes_q: list[np.ndarray], planes_m: list
                     cfg: LoopClosureConfig) -> list[tuple[np.ndarray, np.ndarray]]:
     """Pairs (query plane [4], match plane [4]) that coincide once the query plane ([4], camera frame,
     n . x + d = 0) is moved into the match frame by T_mq [4, 4] (within ``plane_check_deg`` / ``plane_check_m``)."""
-    R, t = T_mq[:3, :3], T_mq[:3, 3]
     cos_ok = np.cos(np.radians(cfg.plane_check_deg))
     pairs = []
     for pq in planes_q:
-        n = R @ pq[:3]
-        d = pq[3] - n @ t  # the query plane in the match frame
+        moved = plane_to_world(pq, T_mq)  # the query plane in the match frame
+        n, d = moved[:3], moved[3]
         close = [pm for pm in planes_m if float(n @ pm[:3]) >= cos_ok and abs(d - pm[3]) <= cfg.plane_check_m]
         if close:
             pairs.append((pq, min(close, key=lambda pm: abs(d - pm[3]))))
@@ -354,19 +354,14 @@ def _verify_with_planes(camera: Camera, uv_q, desc_q, pts_q, desc_m, pts_m, plan
     if keep.sum() < cfg.min_inlier_ratio * len(pairs):
         return None
     T_mq, cov, _ = _joint_refine(camera, T_mq, obj[keep], img[keep], q3d[keep], has_q3d[keep], cfg)
-    std = np.sqrt(np.abs(np.diag(cov)))
-    if not np.all(np.isfinite(std)) or std[3:].max() > cfg.max_sigma_trans_m or \
-            np.degrees(std[:3].max()) > cfg.max_sigma_rot_deg:
-        return None
-    if not planes_agree(T_mq, planes_q, planes_m, cfg):
+    if not _covariance_ok(cov, cfg) or not planes_agree(T_mq, planes_q, planes_m, cfg):
         return None
     # the planes measure the rotation better than a few dozen keypoints: refine with them
     T_mq, cov, _ = _joint_refine(camera, T_mq, obj[keep], img[keep], q3d[keep], has_q3d[keep], cfg,
                                  plane_pairs=matching_planes(T_mq, planes_q, planes_m, cfg))
     if not planes_agree(T_mq, planes_q, planes_m, cfg):
         return None
-    rmse = float(np.sqrt(np.mean(_reproj_errors(camera, T_mq, obj[keep], img[keep]) ** 2)))
-    return PairVerification(T_mq, pairs[keep], rmse, cov, len(pairs))
+    return _verified(camera, T_mq, cov, pairs, obj, img, keep)
 
 
 def _verify_by_features(camera: Camera, uv_q, desc_q, pts_q, desc_m, pts_m,
@@ -396,10 +391,20 @@ def _verify_by_features(camera: Camera, uv_q, desc_q, pts_q, desc_m, pts_m,
     n_in = int(keep.sum())
     if n_in < cfg.min_inliers or n_in < cfg.min_inlier_ratio * len(pairs):
         return None
-    std = np.sqrt(np.abs(np.diag(cov)))  # [6] rotation (rad) then translation (m)
-    if not np.all(np.isfinite(std)) or std[3:].max() > cfg.max_sigma_trans_m or \
-            np.degrees(std[:3].max()) > cfg.max_sigma_rot_deg:
+    if not _covariance_ok(cov, cfg):
         return None
+    return _verified(camera, T_mq, cov, pairs, obj, img, keep)
+
+
+def _covariance_ok(cov: np.ndarray, cfg: LoopClosureConfig) -> bool:
+    """Whether a pose covariance [6, 6] (rotation rad, then translation m) is finite and inside the gates."""
+    std = np.sqrt(np.abs(np.diag(cov)))  # [6]
+    return bool(np.all(np.isfinite(std)) and std[3:].max() <= cfg.max_sigma_trans_m
+                and np.degrees(std[:3].max()) <= cfg.max_sigma_rot_deg)
+
+
+def _verified(camera: Camera, T_mq, cov, pairs, obj, img, keep) -> PairVerification:
+    """The accepted verification: pose, inlier pairs, their RMS reprojection error and the covariance."""
     rmse = float(np.sqrt(np.mean(_reproj_errors(camera, T_mq, obj[keep], img[keep]) ** 2)))
     return PairVerification(T_mq, pairs[keep], rmse, cov, len(pairs))
 

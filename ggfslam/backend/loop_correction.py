@@ -22,11 +22,11 @@ def loop_edges(smap: SlamMap, loop: LoopResult) -> list[PoseEdge]:
     """Consecutive-keyframe and strong covisibility edges from the current estimates, plus the loop edge."""
     poses = smap.poses()
     ids = sorted(poses)
-    edges = [_relative_edge(poses, a, b, "odometry", smap.covisibility(a).get(b, 0))
-             for a, b in zip(ids[:-1], ids[1:])]
+    covis = {a: smap.covisibility(a) for a in ids}
+    edges = [_relative_edge(poses, a, b, "odometry", covis[a].get(b, 0)) for a, b in zip(ids[:-1], ids[1:])]
     consecutive = set(zip(ids[:-1], ids[1:]))
     for a in ids:
-        for b, shared in smap.covisibility(a).items():
+        for b, shared in covis[a].items():
             if a < b and shared >= _COVIS_MIN_SHARED and (a, b) not in consecutive and \
                     {a, b} != {loop.match_id, loop.query_id}:
                 edges.append(_relative_edge(poses, a, b, "covisibility", shared))
