@@ -70,38 +70,25 @@ def _fd_grad(f, n=6, h=1e-5):
     return g
 
 
-def test_reference_pose_gradient_matches_finite_differences():
-    sc = _sparse_scene(torch.float64)
+@pytest.mark.parametrize("backend,dtype,h,rtol,atol_rel", [
+    ("reference", torch.float64, 1e-6, 1e-4, 1e-6),
+    ("cpu", torch.float32, 1e-2, 1e-2, 1e-3),  # the image is float32: larger steps keep rounding noise small
+])
+def test_pose_gradient_matches_finite_differences(backend, dtype, h, rtol, atol_rel):
+    sc = _sparse_scene(dtype)
     T0 = torch.from_numpy(_T_cw0())
     w = _weights()
 
     def f(xi_np):
         with torch.no_grad():
-            out = rasterize(**sc, camera=CAM, T_cw=T0, pose_xi=torch.from_numpy(xi_np), backend="reference")
+            out = rasterize(**sc, camera=CAM, T_cw=T0, pose_xi=torch.from_numpy(xi_np), backend=backend)
         return _loss(out, w).item()
 
     xi = torch.zeros(6, dtype=torch.float64, requires_grad=True)
-    out = rasterize(**sc, camera=CAM, T_cw=T0, pose_xi=xi, backend="reference")
+    out = rasterize(**sc, camera=CAM, T_cw=T0, pose_xi=xi, backend=backend)
     _loss(out, w).backward()
-    fd = _fd_grad(f, h=1e-6)
-    assert np.allclose(xi.grad.numpy(), fd, rtol=1e-4, atol=1e-6 * np.abs(fd).max()), (xi.grad.numpy(), fd)
-
-
-def test_cpu_pose_gradient_matches_finite_differences():
-    sc = _sparse_scene()
-    T0 = torch.from_numpy(_T_cw0())
-    w = _weights()
-
-    def f(xi_np):
-        with torch.no_grad():
-            out = rasterize(**sc, camera=CAM, T_cw=T0, pose_xi=torch.from_numpy(xi_np), backend="cpu")
-        return _loss(out, w).item()
-
-    xi = torch.zeros(6, dtype=torch.float64, requires_grad=True)
-    out = rasterize(**sc, camera=CAM, T_cw=T0, pose_xi=xi, backend="cpu")
-    _loss(out, w).backward()
-    fd = _fd_grad(f, h=1e-2)  # the image is float32: larger steps keep rounding noise small
-    assert np.allclose(xi.grad.numpy(), fd, rtol=1e-2, atol=1e-3 * np.abs(fd).max()), (xi.grad.numpy(), fd)
+    fd = _fd_grad(f, h=h)
+    assert np.allclose(xi.grad.numpy(), fd, rtol=rtol, atol=atol_rel * np.abs(fd).max()), (xi.grad.numpy(), fd)
 
 
 def test_pose_xi_equals_rendering_at_retracted_pose():
