@@ -79,7 +79,7 @@ def _run_one(raw: dict, method: str, out_dir: str) -> dict:
     from ggfslam import slam
     from ggfslam.config import apply_overrides, config_from_dict
 
-    cfg = config_from_dict(apply_overrides(dict(raw), [f"tracking.method={method}"]))
+    cfg = config_from_dict(apply_overrides(dict(raw), [f"tracking.method={method}", "mapping.enabled=false"]))
     m = slam.run(cfg, out_dir, progress=False)
     traj, be, tr, system = m.get("trajectory", {}), m.get("backend", {}), m["tracking"], m["system"]
     return {

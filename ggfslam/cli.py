@@ -1,4 +1,4 @@
-"""Command line: ``ggfslam run | demo | eval | synth | config-help``."""
+"""Command line: ``ggfslam run | demo | eval | render | synth | config-help``."""
 from __future__ import annotations
 
 import functools
@@ -54,19 +54,27 @@ def _print_result(metrics: dict, run_dir: Path, title: str) -> None:
 @app.command()
 @user_errors
 def run(
-    config: Path = typer.Argument(..., help="YAML config file (see configs/)."),
-    out: Path = typer.Option(..., "--out", "-o", help="Run directory to create."),
+    config: Optional[Path] = typer.Argument(None, help="YAML config file (see configs/); optional with --resume."),
+    out: Path = typer.Option(..., "--out", "-o", help="Run directory to create (or to continue with --resume)."),
     set_: list[str] = typer.Option([], "--set", help="Override a config value: --set dataset.stride=2 (repeatable)."),
     overwrite: bool = typer.Option(False, help="Replace an existing run directory made by ggfslam."),
+    resume: bool = typer.Option(False, "--resume", help="Continue an interrupted run from its checkpoint."),
     no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bar."),
 ):
     """Run SLAM on a configured sequence and write a run directory."""
     from ggfslam.config import load_config
+    from ggfslam.rundir import CONFIG_FILE, require_run_dir
 
+    if config is None:
+        if not resume:
+            raise typer.BadParameter("a config file is required (or --resume to continue a run)", param_hint="CONFIG")
+        config = require_run_dir(out) / CONFIG_FILE
+    if resume and overwrite:
+        raise typer.BadParameter("--resume and --overwrite exclude each other")
     cfg = load_config(config, set_)  # before the heavy imports: a bad config fails in a blink
     from ggfslam import slam
 
-    metrics = slam.run(cfg, out, overwrite=overwrite, progress=not no_progress)
+    metrics = slam.run(cfg, out, overwrite=overwrite, progress=not no_progress, resume=resume)
     _print_result(metrics, out, f"{cfg.name}: {metrics['sequence']['dataset']}")
 
 
@@ -103,6 +111,23 @@ def eval_(run_dir: Path = typer.Argument(..., help="A run directory written by `
 
     metrics = slam.evaluate(run_dir)
     _print_result(metrics, run_dir, f"eval: {metrics.get('sequence', {}).get('dataset', run_dir)}")
+
+
+@app.command()
+@user_errors
+def render(
+    run_dir: Path = typer.Argument(..., help="A run directory written by `ggfslam run` (with mapping)."),
+    frames: str = typer.Option("keyframes", help="'keyframes', 'all', or a slice start:stop[:step] of the sequence."),
+    path: Optional[Path] = typer.Option(None, help="TUM trajectory (camera-to-world) to render instead of frames."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Output folder (default RUN_DIR/renders)."),
+    width: Optional[int] = typer.Option(None, help="Render width (default: the training width)."),
+    overwrite: bool = typer.Option(False, help="Replace PNGs of an earlier render in the output folder."),
+):
+    """Render frames of a run, or a new camera path, to PNGs (colour, 16-bit depth in mm)."""
+    from ggfslam.render_run import render_run
+
+    written = render_run(run_dir, frames=frames, path=path, out=out, width=width, overwrite=overwrite)
+    console.print(f"wrote {written['count']} views to {written['folder']}")
 
 
 @app.command()

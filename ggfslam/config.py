@@ -235,6 +235,104 @@ class RenderConfig(_Section):
     """auto: gsplat on a CUDA GPU when installed, else the compiled CPU kernels."""
 
 
+class MappingConfig(_Section):
+    """Structured Gaussian map (Scaffold-GS anchors + MLP decoders) trained on the keyframes."""
+
+    enabled: bool = True
+    """Build and train the Gaussian map (needs ``tracking.method: orb``); False = tracking only."""
+    concurrent: bool = False
+    """Train in a worker thread beside tracking (tracking never waits); False = after each keyframe, repeatable."""
+    threads: int = 1
+    """numba threads of the mapping worker in concurrent mode (tracking keeps the rest of the cores)."""
+    voxel_size: float = 0.04
+    """Anchor voxel size (m)."""
+    n_offsets: int = 10
+    """Gaussians spawned per anchor (k)."""
+    feature_dim: int = 32
+    """Length of each anchor's feature."""
+    hidden: int = 32
+    """Hidden width of the opacity, colour and covariance MLPs."""
+    view_dependent: bool = True
+    """Feed the viewing direction and distance to the decoders."""
+    depth_stride: int = 2
+    """Back-project every n-th pixel (training resolution) of a keyframe's depth to seed anchors."""
+    max_anchors: int = 200000
+    """Upper bound on the number of anchors (growing stops there)."""
+    train_width: int = 320
+    """Training images are downscaled to this width (aspect kept; never upscaled)."""
+    iterations_per_keyframe: int = 100
+    """Optimization steps after each new keyframe."""
+    window: int = 8
+    """Keyframes trained after a new one: the new one (every other step) plus a random sample of older ones."""
+    final_iterations: int = 300
+    """Refinement steps over all keyframes after the last frame (0 = none)."""
+    idle_training: bool = True
+    """Concurrent mode: keep training on random keyframes while no new keyframe waits."""
+    lambda_ssim: float = 0.2
+    """Weight of (1 - SSIM) in the photometric loss (L1 gets 1 - this)."""
+    lambda_depth: float = 0.5
+    """Weight of the depth L1 loss (m)."""
+    lambda_normal: float = 0.05
+    """Weight of the normal loss (1 - cosine to normals of the sensor depth)."""
+    lambda_scale: float = 0.01
+    """Weight of the volume regulariser (mean product of child scales / voxel^3), as in Scaffold-GS."""
+    exposure: bool = True
+    """Learn a per-keyframe affine brightness (exp(a) * c + b per channel)."""
+    lr_features: float = 0.0075
+    """Adam step of anchor features."""
+    lr_offsets: float = 0.01
+    """Adam step of child offsets (in units of the anchor scale)."""
+    lr_scale: float = 0.007
+    """Adam step of log anchor scales."""
+    lr_color: float = 0.01
+    """Adam step of the per-anchor base colour logits."""
+    lr_mlp: float = 0.004
+    """Adam step of the decoder MLPs."""
+    lr_exposure: float = 0.002
+    """Adam step of the exposure parameters."""
+    densify_every: int = 100
+    """Grow and prune every n optimization steps (0 = never)."""
+    densify_from: int = 200
+    """No growing/pruning before this many steps."""
+    grow_grad_threshold: float = 0.02
+    """Mean 2D-mean gradient norm (per pixel) above which a child proposes a new anchor."""
+    prune_min_opacity: float = 0.005
+    """Anchors whose children's mean opacity stays below this are pruned."""
+    density_min_visits: int = 20
+    """Renders an anchor/child must appear in before growing or pruning looks at it."""
+    pose_update_threshold: float = 0.005
+    """Move a keyframe's anchors with it when its pose changes by more than this (m, or rad / 2)."""
+    keyframe_cache: int = 32
+    """Keyframe images kept in memory; the rest live on disk in the run directory."""
+    checkpoint_every: int = 10
+    """Write a resumable checkpoint every n keyframes (0 = only at the end)."""
+    eval_width: int | None = None
+    """Width of the evaluation renders (every frame); None = the training width."""
+    eval_stride: int = 1
+    """Evaluate every n-th frame of the sequence (1 = all frames)."""
+    mesh: bool = True
+    """Fuse the rendered depth of the keyframes into mesh.ply (TSDF)."""
+    mesh_voxel: float = 0.02
+    """TSDF voxel size (m) of mesh.ply."""
+
+    @model_validator(mode="after")
+    def _check(self):
+        for name in ("voxel_size", "mesh_voxel"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0")
+        for name in ("n_offsets", "feature_dim", "hidden", "depth_stride", "max_anchors", "train_width", "window",
+                     "threads", "eval_stride", "density_min_visits"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1")
+        for name in ("iterations_per_keyframe", "final_iterations", "densify_every", "densify_from",
+                     "keyframe_cache", "checkpoint_every"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0")
+        if not 0 <= self.lambda_ssim <= 1:
+            raise ValueError("lambda_ssim must be in [0, 1]")
+        return self
+
+
 class EvalConfig(_Section):
     """Evaluation of a run."""
 
@@ -270,10 +368,19 @@ class Config(_Section):
     """Factor graph and loop closure."""
     render: RenderConfig = RenderConfig()
     """Rasterizer."""
+    mapping: MappingConfig = MappingConfig()
+    """Gaussian map."""
     eval: EvalConfig = EvalConfig()
     """Evaluation."""
     runtime: RuntimeConfig = RuntimeConfig()
     """Process settings."""
+
+    @model_validator(mode="after")
+    def _check_mapping(self):
+        if self.mapping.enabled and self.tracking.method != "orb":
+            raise ValueError("mapping.enabled needs tracking.method 'orb' (the map is trained on its keyframes); "
+                             "set mapping.enabled: false to run the odometry baseline alone")
+        return self
 
 
 # --- loading ------------------------------------------------------------------------------------

@@ -16,6 +16,9 @@ GROUNDTRUTH_FILE = "groundtruth.txt"
 TRACKING_LOG_FILE = "tracking.txt"
 RUN_INFO_FILE = "run.json"
 LOG_FILE = "log.txt"
+GAUSSIANS_FILE = "gaussians.ply"
+MESH_FILE = "mesh.ply"
+KEYFRAME_IMAGES_DIR = "keyframes"
 
 
 def is_run_dir(path: Path) -> bool:

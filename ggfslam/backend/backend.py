@@ -57,6 +57,28 @@ class Backend:
             self._thread = threading.Thread(target=self._worker, name="ggfslam-backend", daemon=True)
             self._thread.start()
 
+    def __getstate__(self) -> dict:
+        """Checkpoints: the queue must be drained first (``drain()``); the worker thread is not pickled."""
+        if self._queue is not None and self._queue.unfinished_tasks:
+            raise RuntimeError("backend: drain() the keyframe queue before pickling")
+        state = self.__dict__.copy()
+        state.update(_queue=None, _thread=None, _error=None)
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        if self.bcfg.concurrent:
+            self._queue = queue.Queue()
+            self._thread = threading.Thread(target=self._worker, name="ggfslam-backend", daemon=True)
+            self._thread.start()
+
+    def drain(self) -> None:
+        """Wait until every queued keyframe is processed (the worker keeps running)."""
+        while self._queue is not None and self._queue.unfinished_tasks and self._thread.is_alive():
+            time.sleep(0.005)  # not queue.join(): a worker that failed leaves tasks undone forever
+        if self._error is not None:
+            raise RuntimeError("backend worker failed") from self._error
+
     # --- keyframes in ---------------------------------------------------------------------------
     def insert_keyframe(self, kf: KeyFrame) -> None:
         """Hand a new keyframe (already in the map) to the backend."""

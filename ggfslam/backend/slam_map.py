@@ -45,6 +45,15 @@ class SlamMap:
         self.planes: dict[int, np.ndarray] = {}
         self.plane_observations: dict[int, dict[int, np.ndarray]] = {}  # plane id -> {kf id: camera coefficients [4]}
 
+    def __getstate__(self) -> dict:  # checkpoints: the lock is per process
+        state = self.__dict__.copy()
+        del state["lock"]
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self.lock = threading.RLock()
+
     # --- landmarks --------------------------------------------------------------------------------
     def _grow(self) -> None:
         cap = 2 * len(self.alive)

@@ -22,6 +22,13 @@ ROWS = [
     ("rendering", "ssim", "SSIM", "{:.3f}"),
     ("rendering", "lpips", "LPIPS", "{}"),
     ("rendering", "depth_l1_cm", "Depth L1 [cm]", "{:.2f}"),
+    ("rendering", "frames", "frames rendered", "{:d}"),
+    ("rendering", "width", "render width [px]", "{:d}"),
+    ("rendering", "render_fps", "rendering [frames/s]", "{:.1f}"),
+    ("mapping", "iterations", "mapping iterations", "{:d}"),
+    ("mapping", "iterations_per_s", "mapping [iterations/s]", "{:.1f}"),
+    ("mapping", "anchors", "anchors", "{:d}"),
+    ("mapping", "gaussians", "Gaussians", "{:d}"),
     ("system", "wall_seconds", "wall time [s]", "{:.1f}"),
     ("system", "peak_rss_mb", "peak memory [MiB]", "{:.0f}"),
 ]

@@ -24,7 +24,7 @@ class DenseOdometry:
     """Frame-to-frame RGB-D odometry at a reduced resolution (``cfg.max_width``)."""
 
     def __init__(self, camera: Camera, cfg: TrackingConfig):
-        self.cfg = cfg
+        self.cfg, self.camera = cfg, camera
         scale = min(1.0, cfg.max_width / camera.width)
         self.size = (max(1, round(camera.width * scale)), max(1, round(camera.height * scale)))
         c = camera.resized(*self.size) if scale < 1.0 else camera
@@ -33,6 +33,12 @@ class DenseOdometry:
             iteration_number_per_pyramid_level=o3d.utility.IntVector([int(n) for n in cfg.iterations]),
             depth_diff_max=cfg.depth_diff_max, depth_min=cfg.depth_min, depth_max=cfg.depth_max)
         self.jacobian = _JACOBIANS[cfg.odometry_term]()
+
+    def __getstate__(self) -> dict:  # Open3D objects do not pickle: rebuilt from the settings (checkpoints)
+        return {"camera": self.camera, "cfg": self.cfg}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__(state["camera"], state["cfg"])
 
     def rgbd(self, frame: Frame) -> o3d.geometry.RGBDImage:
         """The frame as an Open3D RGB-D image at the odometry resolution."""

@@ -42,6 +42,12 @@ class OrbExtractor:
                                       edgeThreshold=19, patchSize=31)
         self.level_scale = cfg.scale_factor ** np.arange(cfg.n_levels)  # [L]
 
+    def __getstate__(self) -> dict:  # cv2.ORB does not pickle: rebuilt from the settings (checkpoints)
+        return {"camera": self.camera, "cfg": self.cfg}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__(state["camera"], state["cfg"])
+
     def _bucket(self, kps: list) -> list:
         if len(kps) <= self.cfg.n_features:
             return kps

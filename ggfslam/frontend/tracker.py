@@ -301,15 +301,17 @@ class OrbTracker:
         is_kf = state == TrackingState.OK and (weak or self._need_keyframe(frame, T, len(lm)))
         lm_per_kp = np.full(len(F), -1, np.int64)
         lm_per_kp[kp] = lm
+        kf_id = -1
         if is_kf:
             # a keyframe placed by dense odometry shares too few points to be held by BA: tie it to its reference
             link = (self.ref_kf, invert(self.map.keyframes[self.ref_kf].T_wc) @ T) if weak else None
             kf = self._new_keyframe(frame, F, T, lm, kp, link)
             lm_per_kp = kf.landmark_ids.copy()
+            kf_id = kf.id
         self.last_T, self.last_features, self.last_lm, self.last_frame = T, F, lm_per_kp, frame
         T_ref = self.map.keyframes[self.ref_kf].T_wc
         self.records.append(FrameRecord(frame.index, frame.timestamp, self.ref_kf, invert(T_ref) @ T, state))
-        return TrackResult(T.copy(), True, len(lm) / max(len(F), 1), state, is_kf, len(lm))
+        return TrackResult(T.copy(), True, len(lm) / max(len(F), 1), state, is_kf, len(lm), kf_id)
 
     def _initialize(self, frame: Frame, F: Features) -> TrackResult:
         """First frame with enough depth-backed keypoints becomes keyframe 0 at the world origin."""
@@ -323,7 +325,7 @@ class OrbTracker:
         self.velocity = np.eye(4)
         self.last_T, self.last_features, self.last_lm, self.last_frame = T, F, kf.landmark_ids.copy(), frame
         self.records.append(FrameRecord(frame.index, frame.timestamp, kf.id, np.eye(4), TrackingState.OK))
-        return TrackResult(T, True, 1.0, TrackingState.OK, True, 0)
+        return TrackResult(T, True, 1.0, TrackingState.OK, True, 0, kf.id)
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Final timestamps [N], camera-to-world poses [N, 4, 4] of every frame, and lost flags [N].

@@ -26,3 +26,4 @@ class TrackResult:
     state: TrackingState = TrackingState.OK
     keyframe: bool = False
     matches: int = 0
+    keyframe_id: int = -1  # id of the keyframe this frame became (when ``keyframe``)

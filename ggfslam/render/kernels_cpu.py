@@ -152,7 +152,7 @@ def _prefetch_last(typingctx, arr, row):
 PREFETCH_AHEAD = 8  # records prefetched ahead in gathers
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _prefetch_pair(pk, pf, pidx, k, kend):
     """Prefetch the record and features of pair k (if k < kend; they may straddle two cache lines)."""
     if k < kend:
@@ -169,7 +169,7 @@ REC = 16
 N_GEO = 6
 
 
-@njit(cache=True, parallel=True, fastmath=FMA)
+@njit(cache=True, nogil=True, parallel=True, fastmath=FMA)
 def project_forward(means, quats, scales, opac, Rcw, tcw, fx, fy, cx, cy, width, height, near, far, eps2d,
                     rec, radii, valid, nworkers):
     """Project N Gaussians. Outputs (preallocated): rec [N, 16] f32 (see R_* fields; conic (a, b, c) with
@@ -197,7 +197,7 @@ def project_forward(means, quats, scales, opac, Rcw, tcw, fx, fy, cx, cy, width,
                              eps2d, rec, radii, valid, limxp, limxn, limyp, limyn, limx2, limy2)
 
 
-@njit(cache=True, inline="always", fastmath=FMA)
+@njit(cache=True, nogil=True, inline="always", fastmath=FMA)
 def _project_one(i, means, quats, scales, opac, Rcw, tcw, fx, fy, cx, cy, width, height, near, far, eps2d,
                  rec, radii, valid, limxp, limxn, limyp, limyn, limx2, limy2):
     """Project Gaussian i (the body of ``project_forward``)."""
@@ -328,7 +328,7 @@ def _project_one(i, means, quats, scales, opac, Rcw, tcw, fx, fy, cx, cy, width,
     rec[i, R_Y1] = fy1
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _radix_sort_hi32(a, tmp):
     """Stable sort of uint64 values by their upper 32 bits (LSD radix, three 11-bit digits; a pass whose digit
     is the same for every value is skipped). Returns the sorted array (``a`` or ``tmp``)."""
@@ -356,7 +356,7 @@ def _radix_sort_hi32(a, tmp):
     return a
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def bin_tiles(valid, rec, colors, extras, width, height, nworkers):
     """Depth-sort the visible Gaussians and build the tile lists.
 
@@ -466,7 +466,7 @@ def bin_tiles(valid, rec, colors, extras, width, height, nworkers):
     return vis, tile_start, pidx, srec, sfeat, pair_start, pair_slot, tile_cost
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _fill_row(r, row_start, row_list, tr, crec, pair_start, tile_start, tile_count, pidx, pair_slot, tile_cost,
               ntx, width, height):
     """Append the Gaussians of tile row r to their tiles' pair lists (body of ``bin_tiles``). Here tr, crec
@@ -495,14 +495,14 @@ def _fill_row(r, row_start, row_list, tr, crec, pair_start, tile_start, tile_cou
             tile_cost[tile] += 0.8 * (min(bx1, px1) - max(bx0, px0) + 1) * (gy1 - gy0 + 1) + 8.0
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def tile_order(cost):
     """Tiles by decreasing estimated cost: workers pull them in this order (longest first), which keeps the
     end of a parallel pass short."""
     return np.argsort(-cost)
 
 
-@njit(cache=True, inline="always", fastmath=FMA)
+@njit(cache=True, nogil=True, inline="always", fastmath=FMA)
 def _row_span(mx, ca, cb, cc, qmax, dy, gx0, gx1):
     """Chord mode: pixels x of the row at offset dy (= mean_y - y) where d^T conic d <= qmax, clipped to
     [gx0, gx1]. Returns (x0, x1, G, E): G = exp(power) at x0, E = exp(power(x0 + 1) - power(x0))."""
@@ -520,7 +520,7 @@ def _row_span(mx, ca, cb, cc, qmax, dy, gx0, gx1):
     return x0, x1, G, E
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _load_pair(pk, pf, j, x0, x1, y0, y1):
     """The record of sorted pair j (its pixel box clipped to the tile [x0, x1] x [y0, y1]) as float64 scalars:
     (gx0, gx1, gy0, gy1, mean x, mean y, conic a, b, c, opacity, qmax, ea, eb, ec, chord flag, f0..f3); the
@@ -535,7 +535,7 @@ def _load_pair(pk, pf, j, x0, x1, y0, y1):
             np.float64(pf[j, 0]), np.float64(pf[j, 1]), np.float64(pf[j, 2]), np.float64(pf[j, 3]))
 
 
-@njit(cache=True, inline="always", fastmath=FMA)
+@njit(cache=True, nogil=True, inline="always", fastmath=FMA)
 def _pair_start(mx, my, ca, cb, cc, gx0, gy0):
     """Recurrence mode: at pixel (gx0, gy0) returns G = exp(power), the x-step factor
     E = exp(power(x+1, y) - power(x, y)) and the y-step factor F = exp(power(x, y+1) - power(x, y))."""
@@ -547,7 +547,7 @@ def _pair_start(mx, my, ca, cb, cc, gx0, gy0):
     return G, E, F
 
 
-@njit(cache=True, parallel=True, fastmath=FMA)
+@njit(cache=True, nogil=True, parallel=True, fastmath=FMA)
 def raster_forward(pk, pf, pidx, tile_start, order, bg, width, height, depth_min_alpha, color, depth_raw, extras, depth,
                    tfinal, last, work_bwd, nworkers):
     """Front-to-back compositing of the pairs of ``bin_tiles`` (pk = srec, pf = sfeat: depth-ordered records and
@@ -682,7 +682,7 @@ def raster_forward(pk, pf, pidx, tile_start, order, bg, width, height, depth_min
                     last[y, x] = lst[p]
 
 
-@njit(cache=True, parallel=True, fastmath=FMA)
+@njit(cache=True, nogil=True, parallel=True, fastmath=FMA)
 def raster_backward(pk, pf, pidx, pair_slot, tile_start, order, bg, width, height, depth_min_alpha, g_color,
                     g_depth_raw, g_extras, g_depth, g_alpha, depth_raw, tfinal, last, pg, nworkers):
     """Back-to-front gradients from dL/d(color [H,W,3], depth_raw [H,W], extras [H,W,K], depth [H,W],
@@ -883,7 +883,7 @@ def raster_backward(pk, pf, pidx, pair_slot, tile_start, order, bg, width, heigh
                     pg[sl, 6 + c] = gf[c]
 
 
-@njit(cache=True, parallel=True, fastmath=FMA)
+@njit(cache=True, nogil=True, parallel=True, fastmath=FMA)
 def project_backward(means, quats, scales, Rcw, tcw, fx, fy, cx, cy, width, height, eps2d, vis, pair_start,
                      pg, g_means, g_quats, g_scales, g_opac, g_colors, g_extras, g_m2d, g_pose_chunks, nworkers):
     """Sum each visible Gaussian's per-pair gradients (its rows of pg), then apply the chain rule to the

@@ -1,0 +1,82 @@
+"""Resumable checkpoints of a run: tracker + backend state, the Gaussian map and its optimizer, RNGs.
+
+``checkpoint.pt`` in the run directory (``torch.save``; written to a temporary file and renamed, so an
+interrupted write never destroys the previous checkpoint). The tracker (with its SLAM map and factor-graph
+state) is stored pickled; the map as tensors. ``ggfslam render`` needs only the map part and the poses.
+Like any pickle, load checkpoints only from run directories you trust.
+"""
+from __future__ import annotations
+
+import os
+import pickle
+import random
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ggfslam.errors import RunDirError
+
+CHECKPOINT_FILE = "checkpoint.pt"
+FORMAT = "ggfslam-checkpoint/1"
+
+
+def rng_state() -> dict:
+    """States of the python, numpy and torch global generators."""
+    return {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state()}
+
+
+def set_rng_state(st: dict) -> None:
+    """Restore ``rng_state()``."""
+    random.setstate(st["python"])
+    np.random.set_state(st["numpy"])
+    torch.set_rng_state(st["torch"])
+
+
+def save_checkpoint(run_dir: Path, *, next_frame: int, tracker, mapper=None, pending=None, lines=None,
+                    timer=None, finished: bool = False) -> Path:
+    """Write ``checkpoint.pt``: everything needed to continue the run at frame ``next_frame``."""
+    backend = getattr(tracker, "backend", None)
+    if backend is not None:
+        backend.drain()  # a keyframe half-way through bundle adjustment cannot be pickled consistently
+    lock = tracker.map.lock if getattr(tracker, "map", None) is not None else None
+    if lock is not None:
+        with lock:
+            tracker_blob = pickle.dumps(tracker, protocol=pickle.HIGHEST_PROTOCOL)
+            kf_poses = tracker.map.poses()
+    else:
+        tracker_blob = pickle.dumps(tracker, protocol=pickle.HIGHEST_PROTOCOL)
+        kf_poses = {}
+    state = {
+        "format": FORMAT, "next_frame": int(next_frame), "finished": finished, "tracker": tracker_blob,
+        "keyframe_poses": kf_poses, "lines": list(lines or []), "rng": rng_state(),
+        "timer": None if timer is None else {"total": dict(timer.total), "calls": dict(timer.calls)},
+        "mapper": None if mapper is None else mapper.state(),
+        "kf_frames": {} if mapper is None else {k: mapper.store.frame_index(k) for k in mapper.store.ids()},
+        "pending": {} if pending is None else {int(k): v for k, v in pending.items()},
+    }
+    path = Path(run_dir) / CHECKPOINT_FILE
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+    return path
+
+
+def load_checkpoint(run_dir: Path) -> dict:
+    """Read ``checkpoint.pt`` of a run (the tracker stays pickled: ``unpickle_tracker``)."""
+    path = Path(run_dir) / CHECKPOINT_FILE
+    if not path.is_file():
+        raise RunDirError(f"{path}: no checkpoint (the run wrote none: mapping.checkpoint_every, or it never "
+                          "reached its first checkpoint)")
+    try:
+        st = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as e:  # torch raises many types for a damaged archive
+        raise RunDirError(f"{path}: damaged checkpoint ({e.__class__.__name__}: {e})") from None
+    if not isinstance(st, dict) or st.get("format") != FORMAT:
+        raise RunDirError(f"{path}: not a {FORMAT} checkpoint")
+    return st
+
+
+def unpickle_tracker(st: dict):
+    """The tracker stored in a checkpoint (threads restarted by the objects themselves)."""
+    return pickle.loads(st["tracker"])

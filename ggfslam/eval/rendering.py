@@ -1,0 +1,55 @@
+"""Rendering quality of a Gaussian map over every frame of a sequence, from the estimated poses."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ggfslam.eval.image import LPIPS, depth_l1_cm, psnr, ssim_np
+from ggfslam.mapping.keyframe_store import resize_rgbd
+
+
+def nearest_keyframes(frame_indices: np.ndarray, kf_frames: dict[int, int]) -> np.ndarray:
+    """For each frame index [N], the keyframe id whose frame is closest in the sequence (-1 if none)."""
+    if not kf_frames:
+        return np.full(len(frame_indices), -1, np.int64)
+    ids = np.array(sorted(kf_frames, key=lambda k: kf_frames[k]))
+    at = np.array([kf_frames[k] for k in ids])
+    pos = np.searchsorted(at, frame_indices).clip(1, len(at) - 1) if len(at) > 1 else np.zeros(len(frame_indices), int)
+    if len(at) == 1:
+        return np.full(len(frame_indices), ids[0])
+    left = np.abs(frame_indices - at[pos - 1]) <= np.abs(at[pos] - frame_indices)
+    return np.where(left, ids[pos - 1], ids[pos])
+
+
+def render_metrics(mapper, dataset, poses: np.ndarray, indices: np.ndarray, intr, lpips: LPIPS | None = None) -> dict:
+    """PSNR, SSIM, depth L1 (cm) and LPIPS of renders at ``poses`` [N, 4, 4] against frames ``indices`` [M].
+
+    Frames are resized to ``intr``; each frame uses the exposure of its nearest keyframe. Returns the means,
+    the render speed and the per-frame values."""
+    kf_frames = {k: mapper.store.frame_index(k) for k in mapper.store.ids()}
+    exposure = nearest_keyframes(np.asarray(indices), kf_frames)
+    rows, render_s = [], 0.0
+    for i, e in zip(indices, exposure):
+        frame = dataset[int(i)]
+        rgb, depth = resize_rgbd(frame.rgb, frame.depth, intr)
+        t0 = time.perf_counter()
+        out = mapper.render(poses[int(i)], intr, exposure_kf=int(e) if e >= 0 else None)
+        render_s += time.perf_counter() - t0
+        img = out.color.numpy()
+        row = {"index": int(i), "psnr": psnr(img, rgb), "ssim": ssim_np(img, rgb),
+               "depth_l1_cm": depth_l1_cm(out.depth.numpy(), depth)}
+        if lpips is not None and lpips.available:
+            row["lpips"] = lpips(img, rgb)
+        rows.append(row)
+    n = len(rows)
+
+    def mean(key):
+        vals = [r[key] for r in rows if key in r and np.isfinite(r[key])]
+        return float(np.mean(vals)) if vals else float("nan")
+
+    res = {"psnr": mean("psnr"), "ssim": mean("ssim"), "depth_l1_cm": mean("depth_l1_cm"),
+           "lpips": mean("lpips") if lpips is not None and lpips.available else "no weights",
+           "frames": n, "width": intr.width, "height": intr.height,
+           "render_fps": n / render_s if render_s > 0 else 0.0, "per_frame": rows}
+    return res

@@ -1,0 +1,178 @@
+"""The structured Gaussian map (Scaffold-GS): anchors on a voxel grid, each decoding k neural Gaussians.
+
+Per anchor v (all world frame, metres):
+- ``anchors`` [A, 3]: voxel-centre position (a buffer: anchors do not move by gradient, only by pose
+  corrections of the keyframe that created them, see ``transform_anchors``);
+- ``features`` [A, F] (F = 32): the learned appearance/geometry code ``f_v``;
+- ``log_scale`` [A, 3]: ``l_v = exp(log_scale)``, scales the offsets and the children's sizes;
+- ``offsets`` [A, k, 3]: child positions ``mu = x_v + O_v * l_v``;
+- ``base_color`` [A, 3]: logit of a per-anchor colour the colour MLP adds to. Scaffold-GS decodes colour
+  from the feature alone; starting each anchor at the colour it was observed with lets a CPU budget of a
+  few hundred iterations per keyframe reach the same images (the MLP still carries all view dependence).
+- ``source_kf`` [A]: keyframe whose depth created the anchor (-1: grown), used to move anchors with it.
+
+Children are decoded by ``ChildDecoder`` (decoders.py). All per-anchor tensors are resized together by
+``select`` / ``append`` so an optimizer's state can follow them (see ``optim.py``).
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import nn
+
+from ggfslam.gaussians.decoders import ChildDecoder, DecodedGaussians
+
+PER_ANCHOR_PARAMS = ("features", "log_scale", "offsets", "base_color")
+
+
+def voxel_keys(points: np.ndarray, voxel: float) -> np.ndarray:
+    """Integer voxel key [N] int64 of points [N, 3] (21 bits per axis, offset so negatives fit)."""
+    ijk = np.floor(points / voxel).astype(np.int64) + (1 << 20)
+    if ijk.size and (ijk.min() < 0 or ijk.max() >= (1 << 21)):
+        raise ValueError(f"points beyond the voxel grid range (|x| > {voxel * (1 << 20):.0f} m)")
+    return (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]
+
+
+class AnchorMap(nn.Module):
+    """Anchors and the MLP decoders of their children (see the module docstring for the fields)."""
+
+    def __init__(self, voxel_size: float, n_offsets: int = 10, feature_dim: int = 32, hidden: int = 32,
+                 view_dependent: bool = True, seed: int = 0):
+        super().__init__()
+        if not voxel_size > 0:
+            raise ValueError(f"voxel_size must be > 0, got {voxel_size}")
+        self.voxel_size = float(voxel_size)
+        self.k = int(n_offsets)
+        self.feature_dim = int(feature_dim)
+        self.gen = torch.Generator().manual_seed(seed)
+        self.register_buffer("anchors", torch.zeros(0, 3))  # [A, 3]
+        self.register_buffer("source_kf", torch.zeros(0, dtype=torch.int64))  # [A]
+        self.features = nn.Parameter(torch.zeros(0, feature_dim))  # [A, F]
+        self.log_scale = nn.Parameter(torch.zeros(0, 3))  # [A, 3]
+        self.offsets = nn.Parameter(torch.zeros(0, self.k, 3))  # [A, k, 3]
+        self.base_color = nn.Parameter(torch.zeros(0, 3))  # [A, 3] logits
+        self.decoder = ChildDecoder(feature_dim, self.k, hidden, view_dependent)
+        self._keys = np.zeros(0, dtype=np.int64)  # sorted voxel keys of the anchors
+
+    # --- size and occupancy ------------------------------------------------------------------------
+    @property
+    def n_anchors(self) -> int:
+        return int(self.anchors.shape[0])
+
+    def _rebuild_keys(self) -> None:
+        self._keys = np.sort(voxel_keys(self.anchors.numpy().astype(np.float64), self.voxel_size))
+
+    def free_voxels(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Unique voxels of points [N, 3] not yet holding an anchor: (first point index [M], key [M])."""
+        if len(points) == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        keys = voxel_keys(points, self.voxel_size)
+        uniq, first = np.unique(keys, return_index=True)
+        if len(self._keys):
+            pos = np.searchsorted(self._keys, uniq).clip(max=len(self._keys) - 1)
+            fresh = self._keys[pos] != uniq
+            uniq, first = uniq[fresh], first[fresh]
+        return first, uniq
+
+    # --- adding, removing --------------------------------------------------------------------------
+    def new_anchor_values(self, points: np.ndarray, colors: np.ndarray, source_kf: int = -1,
+                          spacing: np.ndarray | None = None) -> tuple[dict[str, torch.Tensor], np.ndarray] | None:
+        """Initial values of anchors at the voxel centres of points [N, 3] whose voxel is free.
+
+        ``colors`` [N, 3] in [0, 1] start ``base_color``; ``spacing`` [N] (optional) the local point spacing
+        (default: the voxel size) starts ``l_v``. Returns (values, index [M] of the point that made each
+        anchor), or None when every voxel is taken.
+        """
+        first, keys = self.free_voxels(np.asarray(points, dtype=np.float64))
+        if len(first) == 0:
+            return None
+        v = self.voxel_size
+        centres = (np.floor(points[first] / v) + 0.5) * v  # [M, 3]
+        m = len(first)
+        col = torch.from_numpy(np.clip(np.asarray(colors, np.float32)[first], 0.02, 0.98))
+        size = np.full(m, v, np.float32) if spacing is None else np.maximum(np.asarray(spacing, np.float32)[first], 0.25 * v)
+        # children spread over the voxel from the start: zero offsets (Scaffold-GS) leave all k children on
+        # the anchor, and it takes many iterations to pull them apart
+        offsets = (torch.rand(m, self.k, 3, generator=self.gen) - 0.5)
+        return {
+            "anchors": torch.from_numpy(centres.astype(np.float32)),
+            "source_kf": torch.full((m,), int(source_kf), dtype=torch.int64),
+            "features": torch.zeros(m, self.feature_dim),
+            "log_scale": torch.from_numpy(np.log(size))[:, None].repeat(1, 3),
+            "offsets": offsets,
+            "base_color": torch.logit(col),
+        }, first
+
+    def append(self, values: dict[str, torch.Tensor]) -> int:
+        """Append anchors (a dict from ``new_anchor_values``); returns how many were added."""
+        n = int(values["anchors"].shape[0])
+        with torch.no_grad():
+            self.anchors = torch.cat([self.anchors, values["anchors"]])
+            self.source_kf = torch.cat([self.source_kf, values["source_kf"]])
+            for name in PER_ANCHOR_PARAMS:
+                old = getattr(self, name)
+                setattr(self, name, nn.Parameter(torch.cat([old.detach(), values[name].to(old.dtype)])))
+        self._rebuild_keys()
+        return n
+
+    def select(self, keep: torch.Tensor) -> None:
+        """Keep only the anchors where keep [A] (bool) is True."""
+        with torch.no_grad():
+            self.anchors = self.anchors[keep]
+            self.source_kf = self.source_kf[keep]
+            for name in PER_ANCHOR_PARAMS:
+                setattr(self, name, nn.Parameter(getattr(self, name).detach()[keep]))
+        self._rebuild_keys()
+
+    def transform_anchors(self, mask: torch.Tensor, T: np.ndarray) -> None:
+        """Move anchors [mask] rigidly by T [4, 4] (world to world), rotating their offsets with them."""
+        R = torch.from_numpy(T[:3, :3].astype(np.float32))
+        t = torch.from_numpy(T[:3, 3].astype(np.float32))
+        with torch.no_grad():
+            self.anchors[mask] = self.anchors[mask] @ R.T + t
+            self.offsets[mask] = self.offsets[mask] @ R.T
+        self._rebuild_keys()
+
+    # --- decoding ----------------------------------------------------------------------------------
+    def visible_anchors(self, T_cw: np.ndarray, intr, near: float = 0.05, margin: float = 0.15) -> torch.Tensor:
+        """Anchors [A] bool whose centre projects inside the image widened by ``margin`` (fraction)."""
+        if self.n_anchors == 0:
+            return torch.zeros(0, dtype=torch.bool)
+        R = torch.from_numpy(T_cw[:3, :3].astype(np.float32))
+        t = torch.from_numpy(T_cw[:3, 3].astype(np.float32))
+        pc = self.anchors @ R.T + t  # [A, 3] camera frame
+        z = pc[:, 2]
+        zs = z.clamp_min(1e-6)
+        u = intr.fx * pc[:, 0] / zs + intr.cx
+        v = intr.fy * pc[:, 1] / zs + intr.cy
+        mw, mh = margin * intr.width, margin * intr.height
+        return (z > near) & (u > -mw) & (u < intr.width + mw) & (v > -mh) & (v < intr.height + mh)
+
+    def decode(self, cam_center: np.ndarray | torch.Tensor, mask: torch.Tensor | None = None) -> DecodedGaussians:
+        """Children of the anchors in ``mask`` [A] (all when None) seen from ``cam_center`` [3] (world)."""
+        idx = torch.arange(self.n_anchors) if mask is None else torch.nonzero(mask)[:, 0]  # [M]
+        c = torch.as_tensor(np.asarray(cam_center, np.float32)) if not isinstance(cam_center, torch.Tensor) else cam_center
+        return self.decoder(self.anchors[idx], self.features[idx], self.log_scale[idx], self.offsets[idx],
+                            self.base_color[idx], c.float(), idx)
+
+    def extra_state(self) -> dict:
+        """Sizes and settings needed to rebuild an empty map before ``load_state_dict``."""
+        return {"voxel_size": self.voxel_size, "n_offsets": self.k, "feature_dim": self.feature_dim,
+                "hidden": self.decoder.hidden, "view_dependent": self.decoder.view_dependent,
+                "n_anchors": self.n_anchors}
+
+    @classmethod
+    def from_state(cls, extra: dict, state: dict) -> AnchorMap:
+        """Rebuild a map saved as (``extra_state()``, ``state_dict()``)."""
+        m = cls(extra["voxel_size"], extra["n_offsets"], extra["feature_dim"], extra["hidden"],
+                extra["view_dependent"])
+        n = extra["n_anchors"]
+        m.anchors = torch.zeros(n, 3)
+        m.source_kf = torch.zeros(n, dtype=torch.int64)
+        for name in PER_ANCHOR_PARAMS:
+            p = getattr(m, name)
+            setattr(m, name, nn.Parameter(torch.zeros((n,) + tuple(p.shape[1:]))))
+        m.load_state_dict(state)
+        m._rebuild_keys()
+        return m
+

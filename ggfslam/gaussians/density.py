@@ -1,0 +1,128 @@
+"""Anchor growing and pruning (Scaffold-GS density control) from statistics gathered during training.
+
+- Growing: every child accumulates the norm of its 2D-mean gradient (pixels) each time it is rendered.
+  Children whose mean gradient exceeds ``grad_threshold`` after at least ``min_visits`` renders propose
+  their position; proposals falling in a voxel without an anchor become new anchors (features, scale and
+  colour copied from the parent anchor).
+- Pruning: every anchor accumulates the mean opacity of its children each time it is in view; anchors
+  seen at least ``min_visits`` times whose average stays below ``min_opacity`` are removed.
+Both reset the statistics of what they touched.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ggfslam.gaussians.anchor_map import PER_ANCHOR_PARAMS, AnchorMap
+from ggfslam.gaussians.decoders import DecodedGaussians
+from ggfslam.gaussians.optim import replace_param
+
+
+@dataclass
+class DensityStats:
+    """Per-anchor and per-child accumulators; resized with the map."""
+
+    grad_sum: torch.Tensor  # [A * k] sum of |d L / d mean2d| (pixels)
+    grad_count: torch.Tensor  # [A * k] renders in which the child was decoded and visible
+    opacity_sum: torch.Tensor  # [A] sum of mean child opacity when in view
+    visits: torch.Tensor  # [A] renders in which the anchor was in view
+
+    @classmethod
+    def empty(cls, n_anchors: int, k: int) -> DensityStats:
+        return cls(torch.zeros(n_anchors * k), torch.zeros(n_anchors * k), torch.zeros(n_anchors),
+                   torch.zeros(n_anchors))
+
+
+class DensityControl:
+    """Gathers the statistics and grows/prunes an ``AnchorMap`` (keeping an optimizer's state aligned)."""
+
+    def __init__(self, amap: AnchorMap, grad_threshold: float, min_opacity: float, min_visits: int,
+                 max_anchors: int):
+        self.map = amap
+        self.grad_threshold, self.min_opacity = grad_threshold, min_opacity
+        self.min_visits, self.max_anchors = min_visits, max_anchors
+        self.stats = DensityStats.empty(amap.n_anchors, amap.k)
+
+    def on_append(self, n: int) -> None:
+        """Extend the statistics after ``n`` anchors were appended to the map."""
+        k = self.map.k
+        s = self.stats
+        self.stats = DensityStats(torch.cat([s.grad_sum, torch.zeros(n * k)]), torch.cat([s.grad_count, torch.zeros(n * k)]),
+                                  torch.cat([s.opacity_sum, torch.zeros(n)]), torch.cat([s.visits, torch.zeros(n)]))
+
+    @torch.no_grad()
+    def accumulate(self, g: DecodedGaussians, visible: torch.Tensor, grad2d: torch.Tensor | None,
+                   anchor_mask: torch.Tensor) -> None:
+        """Add one render: decoded children g, their visibility [G] and 2D-mean gradient [G, 2]."""
+        s, k = self.stats, self.map.k
+        idx = torch.nonzero(anchor_mask)[:, 0]
+        s.visits[idx] += 1
+        opa = torch.zeros(self.map.n_anchors)
+        opa.index_add_(0, g.anchor_index, g.opacities.detach())
+        s.opacity_sum[idx] += opa[idx] / k
+        if grad2d is not None:
+            vis = visible.bool()
+            ci = g.child_index[vis]
+            s.grad_sum.index_add_(0, ci, grad2d[vis].norm(dim=1))
+            s.grad_count.index_add_(0, ci, torch.ones(len(ci)))
+
+    @torch.no_grad()
+    def grow(self, opt: torch.optim.Optimizer | None) -> int:
+        """Add anchors where children's mean 2D gradient is large; returns how many were added."""
+        s, amap, k = self.stats, self.map, self.map.k
+        room = self.max_anchors - amap.n_anchors
+        if room <= 0:
+            return 0
+        mean = s.grad_sum / s.grad_count.clamp_min(1)
+        cand = torch.nonzero((s.grad_count >= self.min_visits) & (mean > self.grad_threshold))[:, 0]
+        if len(cand) == 0:
+            return 0
+        cand = cand[torch.argsort(mean[cand], descending=True)]
+        parent = cand // k
+        slot = cand % k
+        scale = torch.exp(amap.log_scale[parent])
+        pos = (amap.anchors[parent] + amap.offsets[parent, slot] * scale).numpy().astype(np.float64)
+        s.grad_sum[cand] = 0
+        s.grad_count[cand] = 0
+        first, _ = amap.free_voxels(pos)
+        if len(first) == 0:
+            return 0
+        first = np.sort(first)[:room]  # cand is sorted by gradient: the strongest proposals first
+        vals, order = amap.new_anchor_values(pos[first], np.full((len(first), 3), 0.5, np.float32), -1)
+        src = parent[torch.from_numpy(first[order])]
+        vals["features"] = amap.features[src].detach().clone()
+        vals["log_scale"] = amap.log_scale[src].detach().clone()
+        vals["base_color"] = amap.base_color[src].detach().clone()
+        vals["source_kf"] = amap.source_kf[src].clone()  # grown anchors move with their parent's keyframe
+        olds = {name: getattr(amap, name) for name in PER_ANCHOR_PARAMS}
+        n = amap.append(vals)
+        if opt is not None:
+            for name in PER_ANCHOR_PARAMS:
+                replace_param(opt, olds[name], getattr(amap, name), None, n)
+        self.on_append(n)
+        return n
+
+    @torch.no_grad()
+    def prune(self, opt: torch.optim.Optimizer | None) -> int:
+        """Remove anchors whose children stayed nearly transparent; returns how many were removed."""
+        s, amap, k = self.stats, self.map, self.map.k
+        avg = s.opacity_sum / s.visits.clamp_min(1)
+        drop = (s.visits >= self.min_visits) & (avg < self.min_opacity)
+        n = int(drop.sum())
+        if n == 0:
+            return 0
+        keep = ~drop
+        olds = {name: getattr(amap, name) for name in PER_ANCHOR_PARAMS}
+        amap.select(keep)
+        if opt is not None:
+            for name in PER_ANCHOR_PARAMS:
+                replace_param(opt, olds[name], getattr(amap, name), keep, 0)
+        keep_child = keep[:, None].expand(-1, k).reshape(-1)
+        self.stats = DensityStats(s.grad_sum[keep_child], s.grad_count[keep_child], s.opacity_sum[keep],
+                                  s.visits[keep])
+        # anchors that survived start a new observation period
+        self.stats.opacity_sum.zero_()
+        self.stats.visits.zero_()
+        return n

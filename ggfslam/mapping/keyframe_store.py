@@ -1,0 +1,122 @@
+"""Keyframe images at training resolution: on disk, with a bounded in-memory cache.
+
+A long sequence keeps thousands of keyframes; holding their images in memory is what makes peer systems
+grow until they crash. Each keyframe is written once as ``<dir>/kf_<id>.npz`` (uint8 colour, float32
+depth in metres) and read back through an LRU cache of ``cache_size`` entries.
+"""
+from __future__ import annotations
+
+import os
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ggfslam.data.types import Camera
+from ggfslam.geometry.depth import normals_from_depth
+from ggfslam.render.types import Intrinsics
+
+
+def scaled_intrinsics(camera: Camera, width: int) -> Intrinsics:
+    """Intrinsics of the camera's images resized to ``width`` (aspect kept, never upscaled)."""
+    if width >= camera.width:
+        return Intrinsics.of(camera)
+    return Intrinsics.of(camera.resized(width, max(1, int(round(camera.height * width / camera.width)))))
+
+
+def resize_rgbd(rgb: np.ndarray, depth: np.ndarray, intr: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+    """Colour [H, W, 3] (area average) and depth [H, W] (nearest: no mixing across edges) at intr's size."""
+    size = (intr.width, intr.height)
+    if rgb.shape[1] == intr.width and rgb.shape[0] == intr.height:
+        return rgb.astype(np.float32, copy=False), depth.astype(np.float32, copy=False)
+    return (cv2.resize(rgb.astype(np.float32, copy=False), size, interpolation=cv2.INTER_AREA),
+            cv2.resize(depth.astype(np.float32, copy=False), size, interpolation=cv2.INTER_NEAREST))
+
+
+@dataclass
+class KeyframeImages:
+    """One keyframe's training targets."""
+
+    rgb: np.ndarray  # [h, w, 3] float32 in [0, 1]
+    depth: np.ndarray  # [h, w] float32 metres, 0 = invalid
+    normals: np.ndarray  # [h, w, 3] float32 camera-frame normals of the depth (0 = undefined)
+    frame_index: int
+
+
+class KeyframeStore:
+    """Keyframe images by id, on disk under ``directory`` with an LRU cache of ``cache_size`` entries."""
+
+    def __init__(self, directory: str | Path, intr: Intrinsics, cache_size: int = 32):
+        self.dir = Path(directory)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.intr = intr
+        self.cache_size = cache_size
+        self._cache: OrderedDict[int, KeyframeImages] = OrderedDict()
+        self._frames: dict[int, int] = {}  # kf id -> frame index
+        self._lock = threading.Lock()
+        for f in sorted(self.dir.glob("kf_*.npz")):  # a resumed run finds its keyframes again
+            with np.load(f) as z:
+                self._frames[int(f.stem[3:])] = int(z["frame_index"])
+
+    def __contains__(self, kf_id: int) -> bool:
+        return kf_id in self._frames
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    def ids(self) -> list[int]:
+        """Stored keyframe ids, ascending."""
+        with self._lock:
+            return sorted(self._frames)
+
+    def frame_index(self, kf_id: int) -> int:
+        """Sequence index of the frame a keyframe was made from."""
+        return self._frames[kf_id]
+
+    def path(self, kf_id: int) -> Path:
+        return self.dir / f"kf_{kf_id:06d}.npz"
+
+    def add(self, kf_id: int, frame_index: int, rgb: np.ndarray, depth: np.ndarray) -> KeyframeImages:
+        """Store a keyframe's full-resolution colour [H, W, 3] and depth [H, W] at training resolution."""
+        rgb_s, depth_s = resize_rgbd(rgb, depth, self.intr)
+        rgb8 = np.clip(np.rint(rgb_s * 255), 0, 255).astype(np.uint8)
+        tmp = self.path(kf_id).with_suffix(".tmp.npz")
+        np.savez(tmp, rgb=rgb8, depth=depth_s, frame_index=frame_index)
+        os.replace(tmp, self.path(kf_id))
+        item = self._make(rgb8, depth_s, frame_index)
+        with self._lock:
+            self._frames[kf_id] = frame_index
+            self._put(kf_id, item)
+        return item
+
+    def _make(self, rgb8: np.ndarray, depth: np.ndarray, frame_index: int) -> KeyframeImages:
+        i = self.intr
+        n = normals_from_depth(depth.astype(np.float64), i.fx, i.fy, i.cx, i.cy).astype(np.float32)
+        return KeyframeImages(rgb8.astype(np.float32) / 255.0, depth, n, frame_index)
+
+    def _put(self, kf_id: int, item: KeyframeImages) -> None:
+        self._cache[kf_id] = item
+        self._cache.move_to_end(kf_id)
+        while len(self._cache) > self.cache_size:
+            self._cache.popitem(last=False)
+
+    def get(self, kf_id: int) -> KeyframeImages:
+        """A keyframe's training images (from the cache or disk)."""
+        with self._lock:
+            item = self._cache.get(kf_id)
+            if item is not None:
+                self._cache.move_to_end(kf_id)
+                return item
+        with np.load(self.path(kf_id)) as z:
+            item = self._make(z["rgb"], z["depth"], int(z["frame_index"]))
+        with self._lock:
+            self._put(kf_id, item)
+        return item
+
+    @property
+    def cached(self) -> int:
+        """How many keyframes are held in memory now."""
+        return len(self._cache)

@@ -1,0 +1,30 @@
+"""Mapping losses (METHOD.md §5): photometric L1 + SSIM, depth L1 and normal consistency."""
+from __future__ import annotations
+
+import torch
+
+from ggfslam.eval.image import ssim
+
+
+def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lambda_ssim: float = 0.2) -> torch.Tensor:
+    """``(1 - l) L1 + l (1 - SSIM)`` of images [H, W, 3] in [0, 1] (l = 0.2: the paper's 0.8 / 0.2)."""
+    l1 = (pred - gt).abs().mean()
+    if lambda_ssim == 0:
+        return l1
+    return (1 - lambda_ssim) * l1 + lambda_ssim * (1 - ssim(pred.permute(2, 0, 1), gt.permute(2, 0, 1)))
+
+
+def depth_loss(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """Mean |pred - gt| (m) over pixels with valid sensor depth (gt > 0); depth maps [H, W]."""
+    valid = gt > 0
+    if not bool(valid.any()):
+        return pred.sum() * 0
+    return (pred[valid] - gt[valid]).abs().mean()
+
+
+def normal_loss(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """Mean (1 - pred . gt) over pixels where both normal maps [H, W, 3] are defined (non-zero)."""
+    valid = (gt.abs().sum(-1) > 0) & (pred.detach().abs().sum(-1) > 0)
+    if not bool(valid.any()):
+        return pred.sum() * 0
+    return (1 - (pred[valid] * gt[valid]).sum(-1)).mean()

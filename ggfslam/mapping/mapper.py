@@ -1,0 +1,290 @@
+"""The mapping loop: trains the anchor map on keyframes whose poses always come from the backend.
+
+- ``add_keyframe`` stores the keyframe's images (training resolution, on disk + cache), seeds anchors from
+  its back-projected depth and the landmarks it sees, and gives it an exposure (affine brightness).
+- ``train(n, focus)`` runs n Adam steps, each on one keyframe: the new one every other step, otherwise a
+  keyframe of a window sampled from the older ones (``mapping.window``); ``focus=None`` samples all.
+- Before every step the keyframe poses are read from ``pose_source`` (the SLAM map); when bundle
+  adjustment or a loop closure moved a keyframe by more than ``pose_update_threshold``, the anchors it
+  created move rigidly with it, so corrections move the map instead of leaving a ghost copy.
+- Loss (METHOD.md §5): ``0.8 L1 + 0.2 (1 - SSIM) + 0.5 L_depth + 0.05 L_normal`` plus Scaffold-GS's volume
+  regulariser; growing and pruning every ``densify_every`` steps.
+Every public method takes ``self.lock``, so a worker thread can train while another thread renders or saves.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+from torch import nn
+
+from ggfslam.config import MappingConfig
+from ggfslam.gaussians.anchor_map import AnchorMap
+from ggfslam.gaussians.decoders import DecodedGaussians
+from ggfslam.gaussians.density import DensityControl
+from ggfslam.gaussians.optim import make_adam, replace_param
+from ggfslam.geometry.depth import backproject, transform_points
+from ggfslam.geometry.se3 import invert, rotation_angle
+from ggfslam.mapping.keyframe_store import KeyframeStore, scaled_intrinsics
+from ggfslam.mapping.losses import depth_loss, normal_loss, photometric_loss
+from ggfslam.render.api import rasterize
+from ggfslam.render.types import Intrinsics, RenderOutput, RenderSettings
+
+PoseSource = Callable[[], dict[int, np.ndarray]]  # keyframe id -> T_wc [4, 4]
+
+
+class Mapper:
+    """Structured Gaussian map + its optimizer, trained from stored keyframes (see the module docstring)."""
+
+    def __init__(self, cfg: MappingConfig, camera, settings: RenderSettings, pose_source: PoseSource,
+                 store_dir: str | Path, seed: int = 0):
+        self.cfg, self.settings, self.pose_source = cfg, settings, pose_source
+        self.intr = scaled_intrinsics(camera, cfg.train_width)
+        self.store = KeyframeStore(store_dir, self.intr, cfg.keyframe_cache)
+        self.map = AnchorMap(cfg.voxel_size, cfg.n_offsets, cfg.feature_dim, cfg.hidden, cfg.view_dependent, seed)
+        self.density = DensityControl(self.map, cfg.grow_grad_threshold, cfg.prune_min_opacity,
+                                      cfg.density_min_visits, cfg.max_anchors)
+        self.exposure = nn.Parameter(torch.zeros(0, 6))  # [E, 6]: log gain (3), offset (3) per keyframe
+        self.exposure_row: dict[int, int] = {}
+        self.opt = self._make_optimizer()
+        self.rng = np.random.default_rng(seed)
+        self.anchor_poses: dict[int, np.ndarray] = {}  # pose of each keyframe when its anchors were placed
+        self.iteration = 0
+        self.train_seconds = 0.0
+        self.grown = self.pruned = 0
+        self.last_losses: dict[str, float] = {}
+        self.lock = threading.RLock()
+
+    def _make_optimizer(self) -> torch.optim.Adam:
+        c, m = self.cfg, self.map
+        return make_adam([
+            {"params": [m.features], "lr": c.lr_features, "name": "features"},
+            {"params": [m.log_scale], "lr": c.lr_scale, "name": "log_scale"},
+            {"params": [m.offsets], "lr": c.lr_offsets, "name": "offsets"},
+            {"params": [m.base_color], "lr": c.lr_color, "name": "base_color"},
+            {"params": list(m.decoder.parameters()), "lr": c.lr_mlp, "name": "mlp"},
+            {"params": [self.exposure], "lr": c.lr_exposure if c.exposure else 0.0, "name": "exposure"},
+        ])
+
+    # --- keyframes -----------------------------------------------------------------------------------
+    def add_keyframe(self, kf_id: int, frame_index: int, rgb: np.ndarray, depth: np.ndarray,
+                     T_wc: np.ndarray | None = None, landmarks: np.ndarray | None = None) -> int:
+        """Store a keyframe and seed anchors from its depth and the landmarks [L, 3] it sees; returns new anchors."""
+        self.store.add(kf_id, frame_index, rgb, depth)
+        return self.seed_keyframe(kf_id, T_wc, landmarks)
+
+    def seed_keyframe(self, kf_id: int, T_wc: np.ndarray | None = None, landmarks: np.ndarray | None = None) -> int:
+        """Anchors from a stored keyframe's depth (and landmarks [L, 3]) at its current pose; returns new anchors."""
+        item = self.store.get(kf_id)
+        with self.lock:
+            if T_wc is None:
+                T_wc = self.pose_source()[kf_id]
+            pts, cols = self._seed_points(item.rgb, item.depth, T_wc, landmarks)
+            added = self._append_anchors(pts, cols, kf_id)
+            self.anchor_poses[kf_id] = T_wc.copy()
+            if kf_id not in self.exposure_row:
+                self._add_exposure(kf_id)
+            return added
+
+    def _seed_points(self, rgb: np.ndarray, depth: np.ndarray, T_wc: np.ndarray, landmarks: np.ndarray | None):
+        i, s = self.intr, self.cfg.depth_stride
+        P = backproject(depth[::s, ::s], i.fx / s, i.fy / s, (i.cx + 0.5) / s - 0.5, (i.cy + 0.5) / s - 0.5)
+        valid = depth[::s, ::s] > 0
+        pts = transform_points(T_wc, P[valid])  # [M, 3] world
+        cols = rgb[::s, ::s][valid]  # [M, 3]
+        if landmarks is not None and len(landmarks):
+            pc = transform_points(invert(T_wc), landmarks)
+            z = pc[:, 2]
+            ok = z > 0.05
+            u = np.rint(i.fx * pc[ok, 0] / z[ok] + i.cx).astype(np.int64)
+            v = np.rint(i.fy * pc[ok, 1] / z[ok] + i.cy).astype(np.int64)
+            inside = (u >= 0) & (u < i.width) & (v >= 0) & (v < i.height)
+            pts = np.concatenate([pts, landmarks[ok][inside]])
+            cols = np.concatenate([cols, rgb[v[inside], u[inside]]])
+        return pts, cols
+
+    def _append_anchors(self, pts: np.ndarray, cols: np.ndarray, source_kf: int) -> int:
+        n_free = self.cfg.max_anchors - self.map.n_anchors
+        res = self.map.new_anchor_values(pts, cols, source_kf) if n_free > 0 else None
+        if res is None:
+            return 0
+        vals, _ = res
+        vals = {k: v[:n_free] for k, v in vals.items()}
+        olds = {name: getattr(self.map, name) for name in ("features", "log_scale", "offsets", "base_color")}
+        n = self.map.append(vals)
+        for name, old in olds.items():
+            replace_param(self.opt, old, getattr(self.map, name), None, n)
+        self.density.on_append(n)
+        return n
+
+    def _add_exposure(self, kf_id: int) -> None:
+        old = self.exposure
+        self.exposure = nn.Parameter(torch.cat([old.detach(), torch.zeros(1, 6)]))
+        replace_param(self.opt, old, self.exposure, None, 1)
+        self.exposure_row[kf_id] = len(self.exposure_row)
+
+    # --- pose corrections ----------------------------------------------------------------------------
+    def sync_poses(self, poses: dict[int, np.ndarray] | None = None) -> int:
+        """Move the anchors of keyframes the backend moved; returns how many keyframes moved."""
+        poses = self.pose_source() if poses is None else poses
+        moved = 0
+        with self.lock:
+            thr = self.cfg.pose_update_threshold
+            src = self.map.source_kf
+            for kf_id, T_old in self.anchor_poses.items():
+                T_new = poses.get(kf_id)
+                if T_new is None:
+                    continue
+                D = T_new @ invert(T_old)  # world-to-world motion of the keyframe
+                if np.linalg.norm(D[:3, 3]) < thr and rotation_angle(D[:3, :3]) < 2 * thr:
+                    continue
+                mask = src == kf_id
+                if bool(mask.any()):
+                    self.map.transform_anchors(mask, D)
+                self.anchor_poses[kf_id] = T_new.copy()
+                moved += 1
+        return moved
+
+    # --- training ------------------------------------------------------------------------------------
+    def train(self, n: int, focus: int | None = None) -> None:
+        """n optimization steps; with ``focus`` every other step is on that keyframe, the rest on a window."""
+        ids = self.store.ids()
+        if not ids or n <= 0:
+            return
+        older = [k for k in ids if k != focus]
+        if focus is not None:
+            take = min(len(older), max(self.cfg.window - 1, 0))
+            window = list(self.rng.choice(older, size=take, replace=False)) if take else []
+        for it in range(n):
+            if focus is not None and (it % 2 == 0 or not window):
+                kf = focus
+            elif focus is not None:
+                kf = int(window[(it // 2) % len(window)])
+            else:
+                kf = int(ids[self.rng.integers(len(ids))])
+            self.step(kf)
+
+    def _decode(self, T_wc: np.ndarray, intr: Intrinsics) -> tuple[DecodedGaussians, torch.Tensor]:
+        mask = self.map.visible_anchors(invert(T_wc), intr, self.settings.near_plane)
+        return self.map.decode(T_wc[:3, 3], mask), mask
+
+    def step(self, kf_id: int, poses: dict[int, np.ndarray] | None = None) -> dict[str, float]:
+        """One Adam step on keyframe ``kf_id``; returns the loss terms."""
+        t0 = time.perf_counter()
+        c = self.cfg
+        with self.lock:
+            if poses is None and self.iteration % 10 == 0:
+                poses = self.pose_source()
+            if poses is not None:
+                self.sync_poses(poses)
+            T_wc = self.anchor_poses.get(kf_id) if poses is None else poses[kf_id]
+            if T_wc is None:
+                T_wc = self.pose_source()[kf_id]
+            item = self.store.get(kf_id)
+            g, mask = self._decode(T_wc, self.intr)
+            if len(g) == 0:
+                return {}
+            out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, self.intr,
+                            torch.from_numpy(invert(T_wc)).float(), settings=self.settings)
+            color = self._expose(out.color, kf_id)
+            gt_rgb = torch.from_numpy(item.rgb)
+            gt_depth = torch.from_numpy(item.depth)
+            l_photo = photometric_loss(color, gt_rgb, c.lambda_ssim)
+            l_depth = depth_loss(out.depth, gt_depth)
+            loss = l_photo + c.lambda_depth * l_depth
+            l_normal = torch.zeros(())
+            if c.lambda_normal > 0:
+                l_normal = normal_loss(out.normals, torch.from_numpy(item.normals))
+                loss = loss + c.lambda_normal * l_normal
+            if c.lambda_scale > 0:
+                vol = g.scales.prod(dim=1).mean() / self.map.voxel_size ** 3
+                loss = loss + c.lambda_scale * vol
+            loss.backward()
+            self.density.accumulate(g, out.visible, out.means2d_grad(), mask)
+            self.opt.step()
+            self.opt.zero_grad(set_to_none=True)
+            self.iteration += 1
+            if c.densify_every and self.iteration >= c.densify_from and self.iteration % c.densify_every == 0:
+                self.grown += self.density.grow(self.opt)
+                self.pruned += self.density.prune(self.opt)
+            self.train_seconds += time.perf_counter() - t0
+            self.last_losses = {"loss": loss.item(), "photo": l_photo.item(), "depth": l_depth.item(),
+                                "normal": l_normal.item()}
+            return self.last_losses
+
+    def _expose(self, color: torch.Tensor, kf_id: int | None) -> torch.Tensor:
+        """Apply a keyframe's affine brightness to a rendered image [H, W, 3]."""
+        if kf_id is None or kf_id not in self.exposure_row or not self.cfg.exposure:
+            return color
+        e = self.exposure[self.exposure_row[kf_id]]
+        return color * torch.exp(e[:3]) + e[3:]
+
+    # --- rendering -----------------------------------------------------------------------------------
+    @torch.no_grad()
+    def render(self, T_wc: np.ndarray, intr: Intrinsics | None = None, exposure_kf: int | None = None) -> RenderOutput:
+        """Render the map from camera-to-world T_wc [4, 4] (training intrinsics by default)."""
+        intr = intr or self.intr
+        with self.lock:
+            g, _ = self._decode(T_wc, intr)
+            out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, intr,
+                            torch.from_numpy(invert(T_wc)).float(), settings=self.settings)
+            out.color = self._expose(out.color, exposure_kf).clamp(0, 1)
+            return out
+
+    @torch.no_grad()
+    def export_gaussians(self) -> DecodedGaussians:
+        """Every child decoded view-independently (the view inputs zeroed) for PLY export."""
+        with self.lock:
+            view = self.map.decoder.view_dependent
+            self.map.decoder.view_dependent = False
+            try:
+                return self.map.decode(np.zeros(3))
+            finally:
+                self.map.decoder.view_dependent = view
+
+    def n_gaussians(self) -> int:
+        """Children with positive opacity, decoded view-independently."""
+        return len(self.export_gaussians())
+
+    def stats(self) -> dict:
+        """Figures for metrics.json."""
+        return {"iterations": self.iteration, "train_seconds": self.train_seconds,
+                "iterations_per_s": self.iteration / self.train_seconds if self.train_seconds else 0.0,
+                "anchors": self.map.n_anchors, "gaussians": self.n_gaussians(), "anchors_grown": self.grown,
+                "anchors_pruned": self.pruned, "keyframes": len(self.store),
+                "train_width": self.intr.width, "train_height": self.intr.height, "last_losses": self.last_losses}
+
+    # --- checkpoint ----------------------------------------------------------------------------------
+    def state(self) -> dict:
+        """Everything needed to continue training (anchors, MLPs, optimizer, exposures, RNG, counters)."""
+        with self.lock:
+            return {"map_extra": self.map.extra_state(), "map": self.map.state_dict(),
+                    "exposure": self.exposure.detach().clone(), "exposure_row": dict(self.exposure_row),
+                    "opt": self.opt.state_dict(), "density": vars(self.density.stats).copy(),
+                    "anchor_poses": {k: v.copy() for k, v in self.anchor_poses.items()},
+                    "rng": self.rng.bit_generator.state, "iteration": self.iteration,
+                    "train_seconds": self.train_seconds, "grown": self.grown, "pruned": self.pruned,
+                    "generator": self.map.gen.get_state()}
+
+    def load_state(self, st: dict) -> None:
+        """Restore ``state()`` into this mapper (same config and camera)."""
+        from ggfslam.gaussians.density import DensityStats
+
+        with self.lock:
+            self.map = AnchorMap.from_state(st["map_extra"], st["map"])
+            self.map.gen.set_state(st["generator"])
+            self.exposure = nn.Parameter(st["exposure"].clone())
+            self.exposure_row = dict(st["exposure_row"])
+            self.opt = self._make_optimizer()
+            self.opt.load_state_dict(st["opt"])
+            self.density = DensityControl(self.map, self.cfg.grow_grad_threshold, self.cfg.prune_min_opacity,
+                                          self.cfg.density_min_visits, self.cfg.max_anchors)
+            self.density.stats = DensityStats(**st["density"])
+            self.anchor_poses = {int(k): v.copy() for k, v in st["anchor_poses"].items()}
+            self.rng.bit_generator.state = st["rng"]
+            self.iteration, self.train_seconds = st["iteration"], st["train_seconds"]
+            self.grown, self.pruned = st["grown"], st["pruned"]

@@ -1,0 +1,98 @@
+"""Mapping beside tracking: keyframes are queued and a worker thread trains; tracking never waits.
+
+The tracking thread stores a keyframe's images (``KeyframeStore.add``, a few ms) and queues its id; the
+worker seeds its anchors and trains ``iterations_per_keyframe`` steps focused on it, and between
+keyframes keeps training on random keyframes (``mapping.idle_training``). The numba kernels release the
+GIL, and the worker gets an explicit numba thread budget (``mapping.threads``) so tracking and mapping
+do not oversubscribe the cores (PERF_NOTES: two threads each asking for all cores collapse).
+"""
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+
+import numpy as np
+
+from ggfslam.mapping.mapper import Mapper
+
+log = logging.getLogger("ggfslam")
+
+
+class MappingWorker:
+    """Feeds keyframes to a ``Mapper``: inline (sequential, repeatable) or in a worker thread."""
+
+    def __init__(self, mapper: Mapper, concurrent: bool, threads: int = 1):
+        self.mapper = mapper
+        self.cfg = mapper.cfg
+        self.concurrent = concurrent
+        self.threads = threads
+        self._queue: queue.Queue = queue.Queue()
+        self._pending: dict[int, np.ndarray | None] = {}  # queued, not yet seeded (saved in checkpoints)
+        self._pending_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._error: BaseException | None = None
+        self._thread: threading.Thread | None = None
+        if concurrent:
+            self._thread = threading.Thread(target=self._run, name="ggfslam-mapping", daemon=True)
+            self._thread.start()
+
+    def submit(self, kf_id: int, frame_index: int, rgb: np.ndarray, depth: np.ndarray,
+               landmarks: np.ndarray | None = None) -> None:
+        """A new keyframe: stored now, seeded and trained now (sequential) or by the worker."""
+        self._raise()
+        self.mapper.store.add(kf_id, frame_index, rgb, depth)
+        self.enqueue(kf_id, landmarks)
+
+    def enqueue(self, kf_id: int, landmarks: np.ndarray | None = None) -> None:
+        """Queue an already stored keyframe for seeding and training."""
+        if not self.concurrent:
+            self.mapper.seed_keyframe(kf_id, landmarks=landmarks)
+            self.mapper.train(self.cfg.iterations_per_keyframe, focus=kf_id)
+            return
+        with self._pending_lock:
+            self._pending[kf_id] = landmarks
+        self._queue.put(kf_id)
+
+    def pending(self) -> dict[int, np.ndarray | None]:
+        """Keyframes queued but not yet seeded (id -> landmarks)."""
+        with self._pending_lock:
+            return dict(self._pending)
+
+    def _run(self) -> None:
+        import numba
+
+        numba.set_num_threads(max(1, min(self.threads, numba.config.NUMBA_NUM_THREADS)))
+        m = self.mapper
+        try:
+            while True:
+                idle = self.cfg.idle_training and len(m.store) > 0 and not self._stop.is_set()
+                try:
+                    kf_id = self._queue.get(timeout=0.0 if idle else 0.05)
+                except queue.Empty:
+                    if self._stop.is_set() and self._queue.empty():
+                        return
+                    if idle:
+                        m.train(5)
+                    continue
+                with self._pending_lock:
+                    landmarks = self._pending.get(kf_id)
+                m.seed_keyframe(kf_id, landmarks=landmarks)
+                with self._pending_lock:
+                    self._pending.pop(kf_id, None)
+                m.train(self.cfg.iterations_per_keyframe, focus=kf_id)
+        except BaseException as e:  # surfaced to the tracking thread at the next keyframe / finish
+            self._error = e
+            log.exception("mapping worker failed")
+
+    def _raise(self) -> None:
+        if self._error is not None:
+            raise RuntimeError("mapping worker failed") from self._error
+
+    def finish(self) -> None:
+        """Process every queued keyframe, then stop the worker."""
+        if self._thread is not None:
+            self._stop.set()
+            self._thread.join()
+            self._thread = None
+        self._raise()
