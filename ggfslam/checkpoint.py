@@ -34,7 +34,7 @@ def set_rng_state(st: dict) -> None:
 
 
 def save_checkpoint(run_dir: Path, *, next_frame: int, tracker, mapper=None, pending=None, lines=None,
-                    timer=None, finished: bool = False) -> Path:
+                    timer=None, finished: bool = False, rss=None) -> Path:
     """Write ``checkpoint.pt``: everything needed to continue the run at frame ``next_frame``."""
     backend = getattr(tracker, "backend", None)
     if backend is not None:
@@ -54,6 +54,7 @@ def save_checkpoint(run_dir: Path, *, next_frame: int, tracker, mapper=None, pen
         "mapper": None if mapper is None else mapper.state(),
         "kf_frames": {} if mapper is None else {k: mapper.store.frame_index(k) for k in mapper.store.ids()},
         "pending": {} if pending is None else {int(k): v for k, v in pending.items()},
+        "rss": list(rss or []),
     }
     path = Path(run_dir) / CHECKPOINT_FILE
     tmp = path.with_name(path.name + ".tmp")

@@ -18,7 +18,7 @@ from ggfslam.data.base import RGBDDataset
 from ggfslam.data.sources import open_dataset_from_config
 from ggfslam.data.trajectory_io import read_tum_trajectory, write_tum_trajectory
 from ggfslam.errors import GGFSlamError, RunDirError
-from ggfslam.eval.perf import StageTimer, peak_rss_mb
+from ggfslam.eval.perf import StageTimer, current_rss_mb, peak_rss_mb
 from ggfslam.eval.trajectory import trajectory_metrics
 from ggfslam.rundir import (
     CONFIG_FILE, GAUSSIANS_FILE, GRAPH_FILE, KEYFRAME_IMAGES_DIR, MESH_FILE, GROUNDTRUTH_FILE, KEYFRAMES_FILE, LOG_FILE, METRICS_FILE, RUN_INFO_FILE, TRACKING_LOG_FILE, TRAJECTORY_FILE,
@@ -26,6 +26,7 @@ from ggfslam.rundir import (
 )
 
 log = logging.getLogger("ggfslam")
+RSS_EVERY = 100  # frames between memory samples (metrics.json system.rss_mb_by_frame)
 
 
 def setup_runtime(config: Config) -> None:
@@ -160,6 +161,7 @@ def run(config: Config, out_dir: str | Path, overwrite: bool = False, progress: 
             set_rng_state(ckpt["rng"])
         every = config.mapping.checkpoint_every
         n_kf = 0
+        rss = [] if ckpt is None else list(ckpt.get("rss", []))  # (frames done, MiB): memory against length
         show = config.runtime.progress if progress is None else progress
         t_start = time.perf_counter()
         with _progress(show and sys.stderr.isatty()) as bar:
@@ -181,7 +183,9 @@ def run(config: Config, out_dir: str | Path, overwrite: bool = False, progress: 
                     if every and n_kf % every == 0:
                         with timer("checkpoint"):
                             save_checkpoint(run_dir, next_frame=i + 1, tracker=tracker, mapper=mapper,
-                                            pending=worker.pending(), lines=lines, timer=timer)
+                                            pending=worker.pending(), lines=lines, timer=timer, rss=rss)
+                if (i + 1) % RSS_EVERY == 0 or i + 1 == n:
+                    rss.append((i + 1, round(current_rss_mb(), 1)))
                 bar.update(task, advance=1, fps=timer.fps("tracking"))
         with timer("finish"):
             tracker.finish()  # the backend's queued keyframes: their corrections belong in the trajectory
@@ -222,8 +226,9 @@ def run(config: Config, out_dir: str | Path, overwrite: bool = False, progress: 
             with timer("map_outputs"):
                 metrics.update(_map_outputs(config, mapper, tracker, dataset, poses_a, run_dir))
             save_checkpoint(run_dir, next_frame=n, tracker=tracker, mapper=mapper, lines=lines, timer=timer,
-                            finished=True)
-        metrics["system"] = {"wall_seconds": wall, "peak_rss_mb": peak_rss_mb(), "stages": timer.summary()}
+                            finished=True, rss=rss)
+        metrics["system"] = {"wall_seconds": wall, "peak_rss_mb": peak_rss_mb(), "rss_mb_by_frame": rss,
+                             "stages": timer.summary()}
         write_json(run_dir / METRICS_FILE, metrics)
         info = read_json(run_dir / RUN_INFO_FILE)
         info.update(status="finished", finished=datetime.now(timezone.utc).isoformat(timespec="seconds"))

@@ -13,7 +13,9 @@ from ggfslam.cli import app
 
 runner = CliRunner()
 SMALL = ["--set", "dataset.synthetic.n_frames=20", "--set", "dataset.synthetic.width=320",
-         "--set", "dataset.synthetic.height=240", "--set", "dataset.synthetic.depth_noise=false"]
+         "--set", "dataset.synthetic.height=240", "--set", "dataset.synthetic.depth_noise=false",
+         "--set", "mapping.iterations_per_keyframe=10", "--set", "mapping.final_iterations=20",
+         "--set", "mapping.eval_stride=2"]
 
 
 @pytest.fixture(scope="module")
@@ -51,6 +53,15 @@ def test_run_writes_the_run_directory(synthetic_run):
     assert "ATE RMSE" in output
     lines = [l for l in (out / "trajectory.txt").read_text().splitlines() if not l.startswith("#")]
     assert len(lines) == 20 and all(len(l.split()) == 8 for l in lines)
+    # the Gaussian map: outputs and rendering metrics over every evaluated frame (not only keyframes)
+    for name in ("gaussians.ply", "mesh.ply", "checkpoint.pt"):
+        assert (out / name).is_file(), name
+    r = metrics["rendering"]
+    assert r["frames"] == 10 and len(r["per_frame"]) == 10 and {f["index"] for f in r["per_frame"]} == set(range(0, 20, 2))
+    assert 15 < r["psnr"] < 60 and 0 < r["ssim"] <= 1 and r["depth_l1_cm"] >= 0
+    assert metrics["mapping"]["anchors"] > 100 and metrics["mapping"]["gaussians"] > 100
+    assert metrics["mapping"]["iterations"] >= 20 and metrics["mapping"]["iterations_per_s"] > 0
+    assert "PSNR" in output and "Gaussians" in output
 
 
 def test_eval_recomputes_the_same_ate(synthetic_run):
@@ -63,6 +74,43 @@ def test_eval_recomputes_the_same_ate(synthetic_run):
     assert "ATE RMSE" in res.output
 
 
+def test_eval_recomputes_the_same_rendering_metrics(synthetic_run):
+    out, _ = synthetic_run
+    before = json.loads((out / "metrics.json").read_text())["rendering"]
+    res = runner.invoke(app, ["eval", str(out)])
+    assert res.exit_code == 0, res.output
+    after = json.loads((out / "metrics.json").read_text())["rendering"]
+    for key in ("psnr", "ssim", "depth_l1_cm"):
+        assert after[key] == pytest.approx(before[key], rel=1e-6), key
+    assert "PSNR" in res.output
+
+
+def test_render_writes_pngs_and_never_overwrites(synthetic_run, tmp_path):
+    import cv2
+
+    out, _ = synthetic_run
+    dest = tmp_path / "views"
+    res = runner.invoke(app, ["render", str(out), "--frames", "0:6:2", "--out", str(dest)])
+    assert res.exit_code == 0, res.output
+    rgb = sorted(dest.glob("*_rgb.png"))
+    assert [p.name for p in rgb] == ["frame_000000_rgb.png", "frame_000002_rgb.png", "frame_000004_rgb.png"]
+    img = cv2.imread(str(rgb[0]))
+    depth = cv2.imread(str(dest / "frame_000000_depth.png"), cv2.IMREAD_UNCHANGED)
+    assert img.shape == (240, 320, 3) and depth.dtype == np.uint16 and depth.shape == (240, 320)
+    assert np.median(depth[depth > 0]) > 500  # millimetres: the synthetic room is metres away
+    again = runner.invoke(app, ["render", str(out), "--frames", "0:6:2", "--out", str(dest)])
+    assert again.exit_code == 2 and "already there" in again.output
+    path = runner.invoke(app, ["render", str(out), "--path", str(out / "keyframes.txt"), "--out", str(tmp_path / "p")])
+    assert path.exit_code == 0, path.output
+    assert len(list((tmp_path / "p").glob("view_*_rgb.png"))) == len(np.loadtxt(out / "keyframes.txt", ndmin=2))
+
+
+def test_resume_refuses_a_finished_run(synthetic_run):
+    out, _ = synthetic_run
+    res = runner.invoke(app, ["run", "--resume", "--out", str(out), "--no-progress"])
+    assert res.exit_code == 2 and "finished" in res.output
+
+
 def test_rerun_from_saved_config_is_deterministic(synthetic_run, tmp_path):
     out, _ = synthetic_run
     res = runner.invoke(app, ["run", str(out / "config.yaml"), "--out", str(tmp_path / "again"), "--no-progress"])
@@ -70,6 +118,9 @@ def test_rerun_from_saved_config_is_deterministic(synthetic_run, tmp_path):
     a = np.loadtxt(out / "trajectory.txt")
     b = np.loadtxt(tmp_path / "again" / "trajectory.txt")
     np.testing.assert_array_equal(a, b)
+    ra = json.loads((out / "metrics.json").read_text())["rendering"]["psnr"]
+    rb = json.loads((tmp_path / "again" / "metrics.json").read_text())["rendering"]["psnr"]
+    assert ra == rb  # the map trains the same way too
 
 
 def test_existing_run_dir_is_not_overwritten(synthetic_run):

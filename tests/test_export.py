@@ -27,7 +27,7 @@ def run_dir(tmp_path_factory):
     cfg = config_from_dict({
         "name": "export", "dataset": {"kind": "synthetic", "synthetic": {
             "n_frames": 20, "width": 320, "height": 240, "depth_noise": True}},
-        "tracking": {"keyframe_max_frames": 4}})
+        "tracking": {"keyframe_max_frames": 4}, "mapping": {"enabled": False}})
     try:
         slam.run(cfg, root / "run", progress=False)
     finally:

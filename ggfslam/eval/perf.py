@@ -14,6 +14,16 @@ def peak_rss_mb() -> float:
     return kb / 1024.0 if sys.platform != "darwin" else kb / 2**20
 
 
+def current_rss_mb() -> float:
+    """Resident set size of this process now, in MiB (Linux /proc; else the peak)."""
+    try:
+        with open("/proc/self/statm") as f:
+            pages = int(f.read().split()[1])
+        return pages * resource.getpagesize() / 2**20
+    except OSError:
+        return peak_rss_mb()
+
+
 class StageTimer:
     """Wall-clock time per named stage; ``fps(stage)`` = calls per second spent in that stage."""
 

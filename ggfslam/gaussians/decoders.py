@@ -77,6 +77,11 @@ class ChildDecoder(nn.Module):
         quats = cov[..., 3:].reshape(m * k, 4)
         means = (anchors[:, None, :] + offsets * scale[:, None, :]).reshape(m * k, 3)
         child = (anchor_index[:, None] * k + torch.arange(k)[None, :]).reshape(m * k)
-        keep = opacity.detach() > 0
-        return DecodedGaussians(means[keep], quats[keep], child_scales[keep], opacity[keep], color[keep],
-                                child[keep] // k, child[keep])
+        # one gather of the kept children instead of six boolean-mask indexings (each a nonzero + copy, and
+        # an index_put in backward): ~10 ms per step at 100k children
+        keep = torch.nonzero(opacity.detach() > 0)[:, 0]  # [G]
+        packed = torch.cat([means, quats, child_scales, opacity[:, None], color], dim=1)  # [M k, 14]
+        packed = packed.index_select(0, keep)
+        child = child.index_select(0, keep)
+        return DecodedGaussians(packed[:, 0:3], packed[:, 3:7], packed[:, 7:10], packed[:, 10], packed[:, 11:14],
+                                child // k, child)

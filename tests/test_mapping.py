@@ -1,0 +1,192 @@
+"""Mapping loop: PSNR rises while training, pose corrections move the map, bounded keyframe cache,
+the concurrent worker, losses, and checkpoint -> resume giving the same renders as an uninterrupted run."""
+import json
+import tempfile
+
+import numpy as np
+import pytest
+import torch
+
+from ggfslam import slam
+from ggfslam.config import MappingConfig, config_from_dict
+from ggfslam.data import sources
+from ggfslam.data.types import Camera
+from ggfslam.errors import ConfigError
+from ggfslam.eval.image import depth_l1_cm, psnr
+from ggfslam.mapping.keyframe_store import KeyframeStore, resize_rgbd, scaled_intrinsics
+from ggfslam.mapping.losses import depth_loss, normal_loss, photometric_loss
+from ggfslam.mapping.mapper import Mapper
+from ggfslam.mapping.worker import MappingWorker
+from ggfslam.render.types import RenderSettings
+
+
+@pytest.fixture(scope="module")
+def sequence(tmp_path_factory):
+    mp = pytest.MonkeyPatch()
+    mp.setenv("GGFSLAM_CACHE", str(tmp_path_factory.mktemp("cache")))
+    cfg = config_from_dict({"dataset": {"kind": "synthetic", "synthetic": {"n_frames": 30, "width": 320,
+                                                                          "height": 240}}}, "test")
+    ds = sources.open_dataset_from_config(cfg.dataset)
+    yield ds
+    mp.undo()
+
+
+def _mapper(ds, poses, **kw):
+    cfg = MappingConfig(train_width=160, **kw)
+    return Mapper(cfg, ds.camera, RenderSettings(backend="cpu"), lambda: dict(poses), tempfile.mkdtemp())
+
+
+def test_psnr_and_depth_improve_while_mapping(sequence):
+    ds, gt = sequence, sequence.gt_poses
+    poses = {}
+    m = _mapper(ds, poses)
+    before, after = [], []
+    for kf, fi in enumerate((0, 12, 24)):
+        f = ds[fi]
+        poses[kf] = gt[fi]
+        assert m.add_keyframe(kf, fi, f.rgb, f.depth) > 0
+        item = m.store.get(kf)
+        out = m.render(gt[fi], exposure_kf=kf)
+        before.append((psnr(out.color.numpy(), item.rgb), depth_l1_cm(out.depth.numpy(), item.depth)))
+        m.train(40, focus=kf)
+        out = m.render(gt[fi], exposure_kf=kf)
+        after.append((psnr(out.color.numpy(), item.rgb), depth_l1_cm(out.depth.numpy(), item.depth)))
+    for (p0, d0), (p1, d1) in zip(before, after):
+        assert p1 > p0 + 3.0, (p0, p1)
+        assert d1 < d0, (d0, d1)
+    assert after[-1][0] > 24.0
+    # a frame between keyframes (never trained on) is rendered well from its pose too
+    f = ds[6]
+    out = m.render(gt[6], exposure_kf=0)
+    rgb, _ = resize_rgbd(f.rgb, f.depth, m.intr)
+    assert psnr(out.color.numpy(), rgb) > 20.0
+    st = m.stats()
+    assert st["iterations"] == 120 and st["keyframes"] == 3 and st["gaussians"] > st["anchors"]
+
+
+def test_backend_pose_corrections_move_the_keyframes_anchors(sequence):
+    ds, gt = sequence, sequence.gt_poses
+    poses = {0: gt[0].copy(), 1: gt[12].copy()}
+    m = _mapper(ds, poses)
+    for kf, fi in enumerate((0, 12)):
+        f = ds[fi]
+        m.add_keyframe(kf, fi, f.rgb, f.depth)
+    own0 = m.map.source_kf == 0
+    a0 = m.map.anchors.clone()
+    D = np.eye(4)
+    D[:3, 3] = [0.05, 0.0, -0.02]  # a loop closure moves keyframe 0 by 5 cm
+    poses[0] = D @ poses[0]
+    assert m.sync_poses() == 1
+    torch.testing.assert_close(m.map.anchors[own0], a0[own0] + torch.tensor([0.05, 0.0, -0.02]))
+    torch.testing.assert_close(m.map.anchors[~own0], a0[~own0])
+    assert m.sync_poses() == 0  # nothing moved since
+    np.testing.assert_allclose(m.anchor_poses[0], poses[0])
+
+
+def test_keyframe_store_is_bounded_and_reads_back_from_disk(tmp_path):
+    cam = Camera(100.0, 100.0, 31.5, 23.5, 64, 48)
+    intr = scaled_intrinsics(cam, 32)
+    store = KeyframeStore(tmp_path / "kf", intr, cache_size=2)
+    rng = np.random.default_rng(0)
+    imgs = [(rng.uniform(0, 1, (48, 64, 3)).astype(np.float32), rng.uniform(0.5, 2, (48, 64)).astype(np.float32))
+            for _ in range(5)]
+    first = [store.add(i, 10 * i, *imgs[i]) for i in range(5)]
+    assert store.cached == 2 and len(store) == 5 and len(list((tmp_path / "kf").glob("kf_*.npz"))) == 5
+    back = store.get(0)  # evicted: read from disk
+    np.testing.assert_allclose(back.rgb, first[0].rgb)
+    np.testing.assert_array_equal(back.depth, first[0].depth)
+    assert back.rgb.shape == (24, 32, 3) and back.frame_index == 0 and store.cached == 2
+    again = KeyframeStore(tmp_path / "kf", intr, cache_size=2)  # a resumed run finds them
+    assert again.ids() == [0, 1, 2, 3, 4] and again.frame_index(3) == 30
+
+
+def test_scaled_intrinsics_keep_projections_consistent():
+    cam = Camera(525.0, 520.0, 319.5, 239.5, 640, 480)
+    s = scaled_intrinsics(cam, 320)
+    assert (s.width, s.height) == (320, 240)
+    X = np.array([0.3, -0.2, 2.0])
+    u_full = cam.fx * X[0] / X[2] + cam.cx
+    u_half = s.fx * X[0] / X[2] + s.cx
+    assert u_half == pytest.approx((u_full + 0.5) * 0.5 - 0.5)
+    assert scaled_intrinsics(cam, 1000).width == 640  # never upscaled
+
+
+def test_losses_on_hand_made_inputs():
+    img = torch.rand(32, 32, 3)
+    assert float(photometric_loss(img, img)) == pytest.approx(0.0, abs=1e-6)
+    assert float(photometric_loss(img + 0.1, img, lambda_ssim=0.0)) == pytest.approx(0.1, abs=1e-6)
+    gt = torch.full((4, 4), 2.0)
+    gt[0] = 0.0  # invalid sensor depth is ignored
+    pred = torch.full((4, 4), 2.5)
+    pred[0] = 100.0
+    assert float(depth_loss(pred, gt)) == pytest.approx(0.5)
+    n = torch.zeros(4, 4, 3)
+    n[..., 2] = -1.0
+    assert float(normal_loss(n, n)) == pytest.approx(0.0)
+    tilted = n.clone()
+    tilted[..., 0], tilted[..., 2] = np.sin(0.5), -np.cos(0.5)
+    assert float(normal_loss(tilted, n)) == pytest.approx(1 - np.cos(0.5), abs=1e-6)
+
+
+def test_concurrent_worker_trains_every_keyframe(sequence):
+    ds, gt = sequence, sequence.gt_poses
+    poses = {}
+    m = _mapper(ds, poses, iterations_per_keyframe=5, idle_training=False)
+    w = MappingWorker(m, concurrent=True, threads=1)
+    for kf, fi in enumerate((0, 10, 20)):
+        poses[kf] = gt[fi]
+        f = ds[fi]
+        w.submit(kf, fi, f.rgb, f.depth)
+    w.finish()
+    assert m.store.ids() == [0, 1, 2] and sorted(m.anchor_poses) == [0, 1, 2]
+    assert m.iteration == 15 and w.pending() == {}
+
+
+def test_mapping_needs_the_orb_tracker():
+    with pytest.raises(ConfigError, match="mapping.enabled"):
+        config_from_dict({"dataset": {"kind": "synthetic"}, "tracking": {"method": "o3d_odometry"}}, "t")
+
+
+def test_resume_after_an_interruption_gives_the_same_run(tmp_path, monkeypatch):
+    monkeypatch.setenv("GGFSLAM_CACHE", str(tmp_path / "cache"))
+    cfg = config_from_dict({
+        "dataset": {"kind": "synthetic", "synthetic": {"n_frames": 24, "width": 320, "height": 240}},
+        "tracking": {"keyframe_max_frames": 5},
+        "mapping": {"iterations_per_keyframe": 5, "final_iterations": 5, "checkpoint_every": 1, "mesh": False,
+                    "eval_stride": 6, "train_width": 160}}, "t")
+    full = slam.run(cfg, tmp_path / "full", progress=False)
+
+    real_open = sources.open_dataset_from_config
+
+    def interrupted(c):
+        ds = real_open(c)
+        cls = ds.__class__
+
+        class Stops(cls):
+            def __getitem__(self, i):
+                if i == 17:
+                    raise KeyboardInterrupt
+                return cls.__getitem__(self, i)
+
+        ds.__class__ = Stops
+        return ds
+
+    monkeypatch.setattr(slam, "open_dataset_from_config", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        slam.run(cfg, tmp_path / "cut", progress=False)
+    assert json.loads((tmp_path / "cut" / "run.json").read_text())["status"] == "interrupted"
+    monkeypatch.setattr(slam, "open_dataset_from_config", real_open)
+    resumed = slam.run(cfg, tmp_path / "cut", progress=False, resume=True)
+    assert json.loads((tmp_path / "cut" / "run.json").read_text())["resumed_at_frame"] > 0
+    np.testing.assert_array_equal(np.loadtxt(tmp_path / "full" / "trajectory.txt"),
+                                  np.loadtxt(tmp_path / "cut" / "trajectory.txt"))
+    assert resumed["rendering"]["psnr"] == full["rendering"]["psnr"]
+    assert resumed["mapping"]["anchors"] == full["mapping"]["anchors"]
+    # and the saved maps render the same image
+    _, ma, _ = slam.load_mapper(tmp_path / "full")
+    _, mb, _ = slam.load_mapper(tmp_path / "cut")
+    T = np.loadtxt(tmp_path / "full" / "keyframes.txt", ndmin=2)[1]
+    from ggfslam.geometry.se3 import pose_from_tum
+
+    pose = pose_from_tum(T[1:])
+    torch.testing.assert_close(ma.render(pose).color, mb.render(pose).color, rtol=0, atol=0)
