@@ -118,9 +118,9 @@ def test_rerun_from_saved_config_is_deterministic(synthetic_run, tmp_path):
     a = np.loadtxt(out / "trajectory.txt")
     b = np.loadtxt(tmp_path / "again" / "trajectory.txt")
     np.testing.assert_array_equal(a, b)
-    ra = json.loads((out / "metrics.json").read_text())["rendering"]["psnr"]
-    rb = json.loads((tmp_path / "again" / "metrics.json").read_text())["rendering"]["psnr"]
-    assert ra == rb  # the map trains the same way too
+    # the map trains the same way too (metrics.json may have been rewritten by `eval`, which reads the poses
+    # back from the rounded text trajectory, so compare the map itself)
+    assert (out / "gaussians.ply").read_bytes() == (tmp_path / "again" / "gaussians.ply").read_bytes()
 
 
 def test_existing_run_dir_is_not_overwritten(synthetic_run):
