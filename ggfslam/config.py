@@ -294,8 +294,8 @@ class MappingConfig(_Section):
     """Grow and prune every n optimization steps (0 = never)."""
     densify_from: int = 200
     """No growing/pruning before this many steps."""
-    grow_grad_threshold: float = 0.02
-    """Mean 2D-mean gradient norm (per pixel) above which a child proposes a new anchor."""
+    grow_grad_threshold: float = 0.0002
+    """Mean 2D-mean gradient norm (NDC units, as 3DGS/Scaffold-GS) above which a child proposes a new anchor."""
     prune_min_opacity: float = 0.005
     """Anchors whose children's mean opacity stays below this are pruned."""
     density_min_visits: int = 20

@@ -241,8 +241,8 @@ def run(config: Config, out_dir: str | Path, overwrite: bool = False, progress: 
         write_json(run_dir / RUN_INFO_FILE, info)
         raise
     finally:
-        if worker is not None and worker._thread is not None:
-            worker._stop.set()
+        if worker is not None:
+            worker.abort()  # no-op after finish(); after an error, no training goes on in the background
         log.removeHandler(handler)
         handler.close()
 

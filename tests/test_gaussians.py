@@ -212,3 +212,21 @@ def test_exported_children_round_trip_through_ply(tmp_path):
 def test_voxel_size_must_be_positive(bad):
     with pytest.raises(ValueError, match="voxel_size"):
         AnchorMap(bad)
+
+
+def test_gradient_statistics_are_in_ndc_units_and_count_visible_children_only():
+    m, _ = _map(10, k=4)
+    g = m.decode(np.array([0.0, 0.0, -3.0]))
+    dc = DensityControl(m, grad_threshold=1.0, min_opacity=0.0, min_visits=1, max_anchors=100)
+    grad = torch.zeros(len(g), 2)
+    grad[:, 0] = 0.01  # pixels, along x
+    visible = torch.ones(len(g), dtype=torch.bool)
+    visible[0] = False
+    mask = torch.ones(m.n_anchors, dtype=torch.bool)
+    dc.accumulate(g, visible, grad, mask, image_size=(320, 240))
+    ci = g.child_index
+    torch.testing.assert_close(dc.stats.grad_sum[ci[1:]], torch.full((len(g) - 1,), 0.01 * 160))
+    assert dc.stats.grad_count[ci[0]] == 0 and (dc.stats.grad_count[ci[1:]] == 1).all()
+    assert (dc.stats.visits == 1).all()
+    opa = torch.zeros(m.n_anchors).index_add_(0, g.anchor_index, g.opacities.detach()) / m.k
+    torch.testing.assert_close(dc.stats.opacity_sum, opa)

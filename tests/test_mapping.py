@@ -190,3 +190,19 @@ def test_resume_after_an_interruption_gives_the_same_run(tmp_path, monkeypatch):
 
     pose = pose_from_tum(T[1:])
     torch.testing.assert_close(ma.render(pose).color, mb.render(pose).color, rtol=0, atol=0)
+
+
+def test_abort_stops_the_worker_promptly(sequence):
+    import time
+
+    ds, gt = sequence, sequence.gt_poses
+    poses = {0: gt[0]}
+    m = _mapper(ds, poses, iterations_per_keyframe=10_000)
+    w = MappingWorker(m, concurrent=True, threads=1)
+    f = ds[0]
+    w.submit(0, 0, f.rgb, f.depth)
+    while m.iteration < 2:
+        time.sleep(0.01)
+    t0 = time.perf_counter()
+    w.abort()
+    assert time.perf_counter() - t0 < 5.0 and m.iteration < 10_000

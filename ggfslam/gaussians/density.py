@@ -1,6 +1,8 @@
 """Anchor growing and pruning (Scaffold-GS density control) from statistics gathered during training.
 
-- Growing: every child accumulates the norm of its 2D-mean gradient (pixels) each time it is rendered.
+- Growing: every child accumulates the norm of its 2D-mean gradient each time it is rendered, in normalised
+  device coordinates as 3DGS and Scaffold-GS measure it (pixel gradient times (W/2, H/2)), so the
+  threshold (Scaffold-GS: 0.0002) does not depend on the training resolution.
   Children whose mean gradient exceeds ``grad_threshold`` after at least ``min_visits`` renders propose
   their position; proposals falling in a voxel without an anchor become new anchors (features, scale and
   colour copied from the parent anchor).
@@ -24,7 +26,7 @@ from ggfslam.gaussians.optim import replace_param
 class DensityStats:
     """Per-anchor and per-child accumulators; resized with the map."""
 
-    grad_sum: torch.Tensor  # [A * k] sum of |d L / d mean2d| (pixels)
+    grad_sum: torch.Tensor  # [A * k] sum of |d L / d mean2d| (NDC units)
     grad_count: torch.Tensor  # [A * k] renders in which the child was decoded and visible
     opacity_sum: torch.Tensor  # [A] sum of mean child opacity when in view
     visits: torch.Tensor  # [A] renders in which the anchor was in view
@@ -54,8 +56,9 @@ class DensityControl:
 
     @torch.no_grad()
     def accumulate(self, g: DecodedGaussians, visible: torch.Tensor, grad2d: torch.Tensor | None,
-                   anchor_mask: torch.Tensor) -> None:
-        """Add one render: decoded children g, their visibility [G] and 2D-mean gradient [G, 2]."""
+                   anchor_mask: torch.Tensor, image_size: tuple[int, int] = (2, 2)) -> None:
+        """Add one render: decoded children g, their visibility [G] and 2D-mean gradient [G, 2] in pixels
+        of an image of ``image_size`` (width, height)."""
         s, k = self.stats, self.map.k
         idx = torch.nonzero(anchor_mask)[:, 0]
         s.visits[idx] += 1
@@ -65,7 +68,8 @@ class DensityControl:
         if grad2d is not None:
             vis = visible.bool()
             ci = g.child_index[vis]
-            s.grad_sum.index_add_(0, ci, grad2d[vis].norm(dim=1))
+            ndc = grad2d[vis] * torch.tensor([image_size[0] / 2, image_size[1] / 2])
+            s.grad_sum.index_add_(0, ci, ndc.norm(dim=1))
             s.grad_count.index_add_(0, ci, torch.ones(len(ci)))
 
     @torch.no_grad()

@@ -16,15 +16,12 @@ def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lambda_ssim: float = 
 
 def depth_loss(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
     """Mean |pred - gt| (m) over pixels with valid sensor depth (gt > 0); depth maps [H, W]."""
-    valid = gt > 0
-    if not bool(valid.any()):
-        return pred.sum() * 0
-    return (pred[valid] - gt[valid]).abs().mean()
+    valid = (gt > 0).to(pred.dtype)
+    # a masked sum, not boolean indexing: no nonzero() forward and no index_put backward per step
+    return ((pred - gt).abs() * valid).sum() / valid.sum().clamp_min(1)
 
 
 def normal_loss(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
     """Mean (1 - pred . gt) over pixels where both normal maps [H, W, 3] are defined (non-zero)."""
-    valid = (gt.abs().sum(-1) > 0) & (pred.detach().abs().sum(-1) > 0)
-    if not bool(valid.any()):
-        return pred.sum() * 0
-    return (1 - (pred[valid] * gt[valid]).sum(-1)).mean()
+    valid = ((gt.abs().sum(-1) > 0) & (pred.detach().abs().sum(-1) > 0)).to(pred.dtype)
+    return ((1 - (pred * gt).sum(-1)) * valid).sum() / valid.sum().clamp_min(1)

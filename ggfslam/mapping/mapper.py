@@ -150,8 +150,9 @@ class Mapper:
         return moved
 
     # --- training ------------------------------------------------------------------------------------
-    def train(self, n: int, focus: int | None = None) -> None:
-        """n optimization steps; with ``focus`` every other step is on that keyframe, the rest on a window."""
+    def train(self, n: int, focus: int | None = None, stop: threading.Event | None = None) -> None:
+        """n optimization steps; with ``focus`` every other step is on that keyframe, the rest on a window.
+        A set ``stop`` event ends the loop after the current step."""
         ids = self.store.ids()
         if not ids or n <= 0:
             return
@@ -160,6 +161,8 @@ class Mapper:
             take = min(len(older), max(self.cfg.window - 1, 0))
             window = list(self.rng.choice(older, size=take, replace=False)) if take else []
         for it in range(n):
+            if stop is not None and stop.is_set():
+                return
             if focus is not None and (it % 2 == 0 or not window):
                 kf = focus
             elif focus is not None:
@@ -204,7 +207,7 @@ class Mapper:
                 vol = g.scales.prod(dim=1).mean() / self.map.voxel_size ** 3
                 loss = loss + c.lambda_scale * vol
             loss.backward()
-            self.density.accumulate(g, out.visible, out.means2d_grad(), mask)
+            self.density.accumulate(g, out.visible, out.means2d_grad(), mask, (self.intr.width, self.intr.height))
             self.opt.step()
             self.opt.zero_grad(set_to_none=True)
             self.iteration += 1

@@ -31,9 +31,15 @@ class MappingWorker:
         self._pending: dict[int, np.ndarray | None] = {}  # queued, not yet seeded (saved in checkpoints)
         self._pending_lock = threading.Lock()
         self._stop = threading.Event()
+        self._abort = threading.Event()
         self._error: BaseException | None = None
         self._thread: threading.Thread | None = None
         if concurrent:
+            import torch
+
+            # torch's intra-op pool is process-wide; tracking uses OpenCV/GTSAM/Open3D, not torch, so capping
+            # it here gives the mapping thread its budget without starving tracking
+            torch.set_num_threads(max(1, threads))
             self._thread = threading.Thread(target=self._run, name="ggfslam-mapping", daemon=True)
             self._thread.start()
 
@@ -65,7 +71,7 @@ class MappingWorker:
         numba.set_num_threads(max(1, min(self.threads, numba.config.NUMBA_NUM_THREADS)))
         m = self.mapper
         try:
-            while True:
+            while not self._abort.is_set():
                 idle = self.cfg.idle_training and len(m.store) > 0 and not self._stop.is_set()
                 try:
                     kf_id = self._queue.get(timeout=0.0 if idle else 0.05)
@@ -73,14 +79,14 @@ class MappingWorker:
                     if self._stop.is_set() and self._queue.empty():
                         return
                     if idle:
-                        m.train(5)
+                        m.train(5, stop=self._abort)
                     continue
                 with self._pending_lock:
                     landmarks = self._pending.get(kf_id)
                 m.seed_keyframe(kf_id, landmarks=landmarks)
                 with self._pending_lock:
                     self._pending.pop(kf_id, None)
-                m.train(self.cfg.iterations_per_keyframe, focus=kf_id)
+                m.train(self.cfg.iterations_per_keyframe, focus=kf_id, stop=self._abort)
         except BaseException as e:  # surfaced to the tracking thread at the next keyframe / finish
             self._error = e
             log.exception("mapping worker failed")
@@ -88,6 +94,14 @@ class MappingWorker:
     def _raise(self) -> None:
         if self._error is not None:
             raise RuntimeError("mapping worker failed") from self._error
+
+    def abort(self) -> None:
+        """Stop the worker after its current step, dropping queued keyframes (a failed or interrupted run)."""
+        self._abort.set()
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
 
     def finish(self) -> None:
         """Process every queued keyframe, then stop the worker."""
