@@ -21,9 +21,6 @@ Usage: ``python benchmarks/bench_mapping.py replica:200 ../shared/data/tum_fr3_c
 from __future__ import annotations
 
 import argparse
-import concurrent.futures as cf
-import json
-import multiprocessing
 import os
 import platform
 import sys
@@ -32,7 +29,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_tracking import _prepare, sequence_config  # noqa: E402  (the same sequence specs)
+from bench_tracking import _prepare, finish_report, in_fresh_process, sequence_config  # noqa: E402
 
 
 def log(msg: str) -> None:
@@ -136,9 +133,7 @@ def main(argv: list[str] | None = None) -> int:
         log(f"{spec} -> {out}")
         row = {"sequence": spec, "name": raw.get("name", "run")}
         try:
-            ctx = multiprocessing.get_context("spawn")
-            with cf.ProcessPoolExecutor(max_workers=1, mp_context=ctx) as pool:  # its peak RSS is its own
-                row.update(pool.submit(_run_one, raw, str(out)).result())
+            row.update(in_fresh_process(_run_one, raw, str(out)))
         except Exception as e:  # one failed run must not lose the others' figures
             log(f"{spec} failed: {type(e).__name__}: {e}")
             row["error"] = f"{type(e).__name__}: {e}"
@@ -149,18 +144,9 @@ def main(argv: list[str] | None = None) -> int:
         report["runs"].append(row)
     if args.throughput:
         log(f"throughput at {args.throughput_width} px, ~{args.throughput_gaussians} Gaussians")
-        ctx = multiprocessing.get_context("spawn")
-        with cf.ProcessPoolExecutor(max_workers=1, mp_context=ctx) as pool:
-            report["throughput"] = pool.submit(throughput, args.throughput_width, args.throughput_gaussians).result()
+        report["throughput"] = in_fresh_process(throughput, args.throughput_width, args.throughput_gaussians)
         log(f"  {report['throughput']['iterations_per_s']:.1f} it/s")
-    if not args.keep:
-        import shutil
-
-        shutil.rmtree(scratch, ignore_errors=True)
-    json.dump(report, stdout, indent=1, default=float)
-    stdout.write("\n")
-    stdout.flush()
-    return 1 if failed else 0
+    return finish_report(report, stdout, scratch, bool(args.keep), failed)
 
 
 if __name__ == "__main__":

@@ -105,6 +105,25 @@ def _prepare(raw: dict) -> None:
         log(f"sequence {cfg.name}: {root} ({time.perf_counter() - t0:.1f} s)")
 
 
+def in_fresh_process(fn, *args):
+    """``fn(*args)`` in a new (spawned) process, so that its peak RSS is its own; returns its result."""
+    ctx = multiprocessing.get_context("spawn")
+    with cf.ProcessPoolExecutor(max_workers=1, mp_context=ctx) as pool:
+        return pool.submit(fn, *args).result()
+
+
+def finish_report(report: dict, stdout, scratch: Path, keep: bool, failed: bool) -> int:
+    """Drop the scratch runs unless kept, write the JSON report; returns the exit status."""
+    if not keep:
+        import shutil
+
+        shutil.rmtree(scratch, ignore_errors=True)
+    json.dump(report, stdout, indent=1, default=float)
+    stdout.write("\n")
+    stdout.flush()
+    return 1 if failed else 0
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark and print its JSON report; returns the exit status (1 if any run failed)."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
@@ -152,9 +171,7 @@ def main(argv: list[str] | None = None) -> int:
                 if args.in_process:
                     row.update(_run_one(raw, method, str(out)))
                 else:  # a fresh process per run: its peak RSS is its own
-                    ctx = multiprocessing.get_context("spawn")
-                    with cf.ProcessPoolExecutor(max_workers=1, mp_context=ctx) as pool:
-                        row.update(pool.submit(_run_one, raw, method, str(out)).result())
+                    row.update(in_fresh_process(_run_one, raw, method, str(out)))
             except Exception as e:  # one failed run must not lose the others' figures
                 log(f"{spec} / {method} failed: {type(e).__name__}: {e}")
                 row["error"] = f"{type(e).__name__}: {e}"
@@ -165,14 +182,7 @@ def main(argv: list[str] | None = None) -> int:
                 log(f"  ATE {ate if ate is None else round(ate, 2)} cm, {row['tracking_fps']:.1f} frames/s, "
                     f"{row['frames_lost']} lost, wall {row['wall_seconds']:.1f} s")
             report["runs"].append(row)
-    if not args.keep:
-        import shutil
-
-        shutil.rmtree(scratch, ignore_errors=True)
-    json.dump(report, stdout, indent=1, default=float)
-    stdout.write("\n")
-    stdout.flush()
-    return 1 if failed else 0
+    return finish_report(report, stdout, scratch, bool(args.keep), failed)
 
 
 if __name__ == "__main__":

@@ -294,8 +294,10 @@ class MappingConfig(_Section):
     """Grow and prune every n optimization steps (0 = never)."""
     densify_from: int = 200
     """No growing/pruning before this many steps."""
-    grow_grad_threshold: float = 0.0002
-    """Mean 2D-mean gradient norm (NDC units, as 3DGS/Scaffold-GS) above which a child proposes a new anchor."""
+    grow_grad_threshold: float = 0.001
+    """Mean 2D-mean gradient norm (NDC units, as 3DGS/Scaffold-GS) above which a child proposes a new anchor.
+    Scaffold-GS's 0.0002 grows ~15% of children here; with a few hundred steps per keyframe the copies cost
+    more than they add (Replica office0, ground-truth poses: 34.9 dB vs 35.7 dB at 0.001)."""
     prune_min_opacity: float = 0.005
     """Anchors whose children's mean opacity stays below this are pruned."""
     density_min_visits: int = 20

@@ -30,11 +30,40 @@ def psnr(img: np.ndarray | torch.Tensor, ref: np.ndarray | torch.Tensor, mask=No
     return float("inf") if mse == 0 else -10.0 * float(np.log10(mse))
 
 
+_WINDOWS: dict[tuple, torch.Tensor] = {}
+
+
+def _gauss_window(channels: int, dtype, device, size: int = 11, sigma: float = 1.5) -> torch.Tensor:
+    key = (channels, dtype, device, size, sigma)
+    if key not in _WINDOWS:
+        x = torch.arange(size, dtype=dtype, device=device) - size // 2
+        g = torch.exp(-(x ** 2) / (2 * sigma ** 2))
+        _WINDOWS[key] = (g / g.sum()).view(1, 1, 1, size).repeat(channels, 1, 1, 1)  # [C, 1, 1, size]
+    return _WINDOWS[key]
+
+
 def ssim(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
-    """Differentiable SSIM (11x11 Gaussian window, sigma 1.5) of [3, H, W] or [B, 3, H, W] images in [0, 1]."""
+    """Differentiable SSIM (11x11 Gaussian window, sigma 1.5, 'valid' borders) of [3, H, W] or [B, 3, H, W]
+    images in [0, 1]; the mean over pixels and channels.
+
+    The same formula as ``pytorch_msssim.ssim`` (tested against it), but the five filtered maps (means,
+    second moments) go through one grouped separable convolution instead of five: the mapping loss calls
+    this every step. Images smaller than the window fall back to ``pytorch_msssim``.
+    """
     if img.dim() == 3:
         img, ref = img[None], ref[None]
-    return _ms_ssim(img, ref, data_range=1.0, size_average=True)
+    B, C, H, W = img.shape
+    if H < 11 or W < 11:
+        return _ms_ssim(img, ref, data_range=1.0, size_average=True)
+    z = torch.cat([img, ref, img * img, ref * ref, img * ref], dim=1)  # [B, 5C, H, W]
+    win = _gauss_window(5 * C, img.dtype, img.device)
+    z = torch.nn.functional.conv2d(z, win, groups=5 * C)  # along W
+    z = torch.nn.functional.conv2d(z, win.transpose(2, 3), groups=5 * C)  # along H
+    mu1, mu2, e11, e22, e12 = z.split(C, dim=1)
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    mu1_sq, mu2_sq, mu12 = mu1 * mu1, mu2 * mu2, mu1 * mu2
+    cs = (2 * (e12 - mu12) + c2) / ((e11 - mu1_sq) + (e22 - mu2_sq) + c2)
+    return (((2 * mu12 + c1) / (mu1_sq + mu2_sq + c1)) * cs).mean()
 
 
 def ssim_np(img: np.ndarray, ref: np.ndarray) -> float:

@@ -53,6 +53,7 @@ class Mapper:
         self.opt = self._make_optimizer()
         self.rng = np.random.default_rng(seed)
         self.anchor_poses: dict[int, np.ndarray] = {}  # pose of each keyframe when its anchors were placed
+        self._poses: dict[int, np.ndarray] = {}  # the backend's keyframe poses as last read
         self.iteration = 0
         self.train_seconds = 0.0
         self.grown = self.pruned = 0
@@ -180,13 +181,13 @@ class Mapper:
         t0 = time.perf_counter()
         c = self.cfg
         with self.lock:
-            if poses is None and self.iteration % 10 == 0:
+            # the backend's poses, re-read every 10 steps (a copy under its lock) or when a keyframe is new
+            if poses is None and (self.iteration % 10 == 0 or kf_id not in self._poses):
                 poses = self.pose_source()
             if poses is not None:
+                self._poses = poses
                 self.sync_poses(poses)
-            T_wc = self.anchor_poses.get(kf_id) if poses is None else poses[kf_id]
-            if T_wc is None:
-                T_wc = self.pose_source()[kf_id]
+            T_wc = self._poses[kf_id]
             item = self.store.get(kf_id)
             g, mask = self._decode(T_wc, self.intr)
             if len(g) == 0:
@@ -269,6 +270,7 @@ class Mapper:
                     "exposure": self.exposure.detach().clone(), "exposure_row": dict(self.exposure_row),
                     "opt": self.opt.state_dict(), "density": vars(self.density.stats).copy(),
                     "anchor_poses": {k: v.copy() for k, v in self.anchor_poses.items()},
+                    "poses": {k: v.copy() for k, v in self._poses.items()},
                     "rng": self.rng.bit_generator.state, "iteration": self.iteration,
                     "train_seconds": self.train_seconds, "grown": self.grown, "pruned": self.pruned,
                     "generator": self.map.gen.get_state()}
@@ -288,6 +290,7 @@ class Mapper:
                                           self.cfg.density_min_visits, self.cfg.max_anchors)
             self.density.stats = DensityStats(**st["density"])
             self.anchor_poses = {int(k): v.copy() for k, v in st["anchor_poses"].items()}
+            self._poses = {int(k): v.copy() for k, v in st["poses"].items()}
             self.rng.bit_generator.state = st["rng"]
             self.iteration, self.train_seconds = st["iteration"], st["train_seconds"]
             self.grown, self.pruned = st["grown"], st["pruned"]
