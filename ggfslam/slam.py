@@ -154,13 +154,14 @@ def run(config: Config, out_dir: str | Path, overwrite: bool = False, progress: 
 
             if ckpt is not None and ckpt["mapper"] is not None:
                 mapper.load_state(ckpt["mapper"])
+                # keyframes stored after the checkpoint are made again, under the same ids, as the run goes on
+                mapper.store.retain(ckpt["kf_frames"])
             worker = MappingWorker(mapper, config.mapping.concurrent, config.mapping.threads)
             for kf_id, lms in (ckpt or {}).get("pending", {}).items():
                 worker.enqueue(kf_id, lms)
         if ckpt is not None:
             set_rng_state(ckpt["rng"])
         every = config.mapping.checkpoint_every
-        n_kf = 0
         rss = [] if ckpt is None else list(ckpt.get("rss", []))  # (frames done, MiB): memory against length
         show = config.runtime.progress if progress is None else progress
         t_start = time.perf_counter()
@@ -179,8 +180,7 @@ def run(config: Config, out_dir: str | Path, overwrite: bool = False, progress: 
                     with timer("mapping"):  # sequential mode: training; concurrent: storing the images
                         worker.submit(res.keyframe_id, frame.index, frame.rgb, frame.depth,
                                       _keyframe_landmarks(tracker, res.keyframe_id))
-                    n_kf += 1
-                    if every and n_kf % every == 0:
+                    if every and len(mapper.store) % every == 0:
                         with timer("checkpoint"):
                             save_checkpoint(run_dir, next_frame=i + 1, tracker=tracker, mapper=mapper,
                                             pending=worker.pending(), lines=lines, timer=timer, rss=rss)

@@ -152,7 +152,7 @@ def test_resume_after_an_interruption_gives_the_same_run(tmp_path, monkeypatch):
     cfg = config_from_dict({
         "dataset": {"kind": "synthetic", "synthetic": {"n_frames": 24, "width": 320, "height": 240}},
         "tracking": {"keyframe_max_frames": 5},
-        "mapping": {"iterations_per_keyframe": 5, "final_iterations": 5, "checkpoint_every": 1, "mesh": False,
+        "mapping": {"iterations_per_keyframe": 5, "final_iterations": 5, "checkpoint_every": 2, "mesh": False,
                     "eval_stride": 6, "train_width": 160}}, "t")
     full = slam.run(cfg, tmp_path / "full", progress=False)
 

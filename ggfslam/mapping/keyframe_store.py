@@ -116,6 +116,18 @@ class KeyframeStore:
             self._put(kf_id, item)
         return item
 
+    def retain(self, kf_ids) -> list[int]:
+        """Delete the stored keyframes not in ``kf_ids`` (a resumed run re-creates those after its checkpoint);
+        returns the removed ids."""
+        keep = set(int(k) for k in kf_ids)
+        with self._lock:
+            gone = [k for k in self._frames if k not in keep]
+            for k in gone:
+                self.path(k).unlink(missing_ok=True)
+                del self._frames[k]
+                self._cache.pop(k, None)
+        return gone
+
     @property
     def cached(self) -> int:
         """How many keyframes are held in memory now."""

@@ -154,7 +154,7 @@ class Mapper:
     def train(self, n: int, focus: int | None = None, stop: threading.Event | None = None) -> None:
         """n optimization steps; with ``focus`` every other step is on that keyframe, the rest on a window.
         A set ``stop`` event ends the loop after the current step."""
-        ids = self.store.ids()
+        ids = [k for k in self.store.ids() if k in self.anchor_poses]  # seeded keyframes only
         if not ids or n <= 0:
             return
         older = [k for k in ids if k != focus]
