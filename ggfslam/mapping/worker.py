@@ -4,7 +4,8 @@ The tracking thread stores a keyframe's images (``KeyframeStore.add``, a few ms)
 worker seeds its anchors and trains ``iterations_per_keyframe`` steps focused on it, and between
 keyframes keeps training on random keyframes (``mapping.idle_training``). The numba kernels release the
 GIL, and the worker gets an explicit numba thread budget (``mapping.threads``) so tracking and mapping
-do not oversubscribe the cores (PERF_NOTES: two threads each asking for all cores collapse).
+do not oversubscribe the cores (PERF_NOTES: two threads each asking for all cores collapse). Once
+tracking has finished, the worker takes every core for the keyframes still queued.
 """
 from __future__ import annotations
 
@@ -39,6 +40,7 @@ class MappingWorker:
 
             # torch's intra-op pool is process-wide; tracking uses OpenCV/GTSAM/Open3D, not torch, so capping
             # it here gives the mapping thread its budget without starving tracking
+            self._torch_threads = torch.get_num_threads()  # restored when tracking is done
             torch.set_num_threads(max(1, threads))
             self._thread = threading.Thread(target=self._run, name="ggfslam-mapping", daemon=True)
             self._thread.start()
@@ -70,8 +72,16 @@ class MappingWorker:
 
         numba.set_num_threads(max(1, min(self.threads, numba.config.NUMBA_NUM_THREADS)))
         m = self.mapper
+        full = False
         try:
             while not self._abort.is_set():
+                if self._stop.is_set() and not full:
+                    # tracking has finished: the queued keyframes get every core (numba's budget is per thread)
+                    numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+                    self._restore_torch_threads()
+                    full = True
+                    log.info("tracking finished: mapping takes %d threads for %d queued keyframes (%d steps so far)",
+                             numba.get_num_threads(), self._queue.qsize(), m.iteration)
                 idle = self.cfg.idle_training and len(m.store) > 0 and not self._stop.is_set()
                 try:
                     kf_id = self._queue.get(timeout=0.0 if idle else 0.05)
@@ -91,6 +101,11 @@ class MappingWorker:
             self._error = e
             log.exception("mapping worker failed")
 
+    def _restore_torch_threads(self) -> None:
+        import torch
+
+        torch.set_num_threads(self._torch_threads)
+
     def _raise(self) -> None:
         if self._error is not None:
             raise RuntimeError("mapping worker failed") from self._error
@@ -102,11 +117,14 @@ class MappingWorker:
         if self._thread is not None:
             self._thread.join()
             self._thread = None
+            self._restore_torch_threads()
 
     def finish(self) -> None:
         """Process every queued keyframe, then stop the worker."""
         if self._thread is not None:
             self._stop.set()
             self._thread.join()
+            self._thread = None
+            self._restore_torch_threads()  # the final refinement runs on this thread
             self._thread = None
         self._raise()
