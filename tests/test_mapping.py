@@ -132,7 +132,9 @@ def test_concurrent_worker_trains_every_keyframe(sequence):
     ds, gt = sequence, sequence.gt_poses
     poses = {}
     m = _mapper(ds, poses, iterations_per_keyframe=5, idle_training=False)
+    threads = torch.get_num_threads()
     w = MappingWorker(m, concurrent=True, threads=1)
+    assert torch.get_num_threads() == 1  # tracking's share while both run
     for kf, fi in enumerate((0, 10, 20)):
         poses[kf] = gt[fi]
         f = ds[fi]
@@ -140,6 +142,7 @@ def test_concurrent_worker_trains_every_keyframe(sequence):
     w.finish()
     assert m.store.ids() == [0, 1, 2] and sorted(m.anchor_poses) == [0, 1, 2]
     assert m.iteration == 15 and w.pending() == {}
+    assert torch.get_num_threads() == threads  # the final refinement gets the cores back
 
 
 def test_mapping_needs_the_orb_tracker():
