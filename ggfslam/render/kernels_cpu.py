@@ -66,6 +66,11 @@ if not os.environ.get("NUMBA_CACHE_DIR"):
 import numba
 import numpy as np
 from llvmlite import ir
+
+if not os.environ.get("NUMBA_THREADING_LAYER_PRIORITY") and not os.environ.get("NUMBA_THREADING_LAYER"):
+    # OpenMP first: numba's default order tries TBB first and warns on every run where the installed TBB
+    # is too old, before falling back to OpenMP anyway
+    numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
 from numba import njit, prange, types
 from numba.core import cgutils
 from numba.extending import intrinsic
