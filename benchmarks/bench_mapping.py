@@ -24,14 +24,13 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_tracking import _prepare, finish_report, in_fresh_process, sequence_config  # noqa: E402
+from bench_tracking import finish_report, in_fresh_process, prepared_sequences, start_report  # noqa: E402
 
 
 def log(msg: str) -> None:
@@ -121,24 +120,10 @@ def main(argv: list[str] | None = None) -> int:
     if not args.sequences and not args.throughput:
         ap.error("give at least one sequence or --throughput")
 
-    stdout = os.fdopen(os.dup(1), "w")  # the report's channel; fd 1 itself goes to stderr from here on
-    os.dup2(2, 1)
-    from ggfslam.errors import GGFSlamError
-
-    report = {"benchmark": "mapping", "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
-              "host": {"python": platform.python_version(), "machine": platform.machine(), "cpus": os.cpu_count()},
-              "overrides": args.overrides, "runs": []}
+    report, stdout = start_report("mapping", args.overrides)
     scratch = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="bench_mapping-"))
-    failed = False
-    for spec in args.sequences:
-        try:
-            raw = sequence_config(spec, args.overrides)
-            _prepare(raw)
-        except GGFSlamError as e:
-            log(f"{spec}: {e}")
-            report["runs"].append({"sequence": spec, "error": str(e)})
-            failed = True
-            continue
+    ready, failed = prepared_sequences(args.sequences, args.overrides, report)
+    for spec, raw in ready:
         out = scratch / str(raw.get("name", "run")).replace("/", "_")
         log(f"{spec} -> {out}")
         row = {"sequence": spec, "name": raw.get("name", "run")}

@@ -105,6 +105,36 @@ def _prepare(raw: dict) -> None:
         log(f"sequence {cfg.name}: {root} ({time.perf_counter() - t0:.1f} s)")
 
 
+def start_report(benchmark: str, overrides: list[str], **extra) -> tuple[dict, object]:
+    """The report skeleton and its output channel (the real stdout); fd 1 goes to stderr from here on, so
+    library prints cannot corrupt the JSON."""
+    stdout = os.fdopen(os.dup(1), "w")
+    os.dup2(2, 1)
+    report = {"benchmark": benchmark, "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
+              "host": {"python": platform.python_version(), "machine": platform.machine(), "cpus": os.cpu_count()},
+              **extra, "overrides": overrides, "runs": []}
+    return report, stdout
+
+
+def prepared_sequences(specs: list[str], overrides: list[str], report: dict) -> tuple[list[tuple[str, dict]], bool]:
+    """(spec, raw config) of each sequence, synthetic ones generated now; specs that fail to load are recorded
+    in the report. Returns them and whether any failed."""
+    from ggfslam.errors import GGFSlamError
+
+    ready, failed = [], False
+    for spec in specs:
+        try:
+            raw = sequence_config(spec, overrides)
+            _prepare(raw)
+        except GGFSlamError as e:
+            log(f"{spec}: {e}")
+            report["runs"].append({"sequence": spec, "error": str(e)})
+            failed = True
+            continue
+        ready.append((spec, raw))
+    return ready, failed
+
+
 def in_fresh_process(fn, *args):
     """``fn(*args)`` in a new (spawned) process, so that its peak RSS is its own; returns its result."""
     ctx = multiprocessing.get_context("spawn")
@@ -142,26 +172,10 @@ def main(argv: list[str] | None = None) -> int:
     if bad:
         ap.error(f"unknown method(s) {', '.join(bad)}; choose from {', '.join(METHODS)}")
 
-    stdout = os.fdopen(os.dup(1), "w")  # the report's channel; fd 1 itself goes to stderr from here on
-    os.dup2(2, 1)
-    from ggfslam.errors import GGFSlamError
-
-    report = {
-        "benchmark": "tracking", "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
-        "host": {"python": platform.python_version(), "machine": platform.machine(), "cpus": os.cpu_count()},
-        "methods": methods, "overrides": args.overrides, "runs": [],
-    }
+    report, stdout = start_report("tracking", args.overrides, methods=methods)
     scratch = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="bench_tracking-"))
-    failed = False
-    for spec in args.sequences:
-        try:
-            raw = sequence_config(spec, args.overrides)
-            _prepare(raw)
-        except GGFSlamError as e:
-            log(f"{spec}: {e}")
-            report["runs"].append({"sequence": spec, "error": str(e)})
-            failed = True
-            continue
+    ready, failed = prepared_sequences(args.sequences, args.overrides, report)
+    for spec, raw in ready:
         for method in methods:
             out = scratch / f"{raw.get('name', 'run')}-{method}".replace("/", "_")
             log(f"{spec} / {method} -> {out}")
