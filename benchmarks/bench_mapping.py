@@ -30,12 +30,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_tracking import finish_report, in_fresh_process, prepared_sequences, start_report  # noqa: E402
-
-
-def log(msg: str) -> None:
-    """A progress line on stderr."""
-    print(f"[bench_mapping] {msg}", file=sys.stderr, flush=True)
+from bench_tracking import finish_report, in_fresh_process, log, prepared_sequences, start_report  # noqa: E402
 
 
 def _run_one(raw: dict, out_dir: str) -> dict:

@@ -39,7 +39,8 @@ METHODS = ("orb", "o3d_odometry")
 
 def log(msg: str) -> None:
     """A progress line on stderr."""
-    print(f"[bench_tracking] {msg}", file=sys.stderr, flush=True)
+    # named after the script that runs (bench_mapping uses the helpers below too)
+    print(f"[{Path(sys.argv[0]).stem or 'bench_tracking'}] {msg}", file=sys.stderr, flush=True)
 
 
 def sequence_config(spec: str, overrides: list[str]) -> dict:
