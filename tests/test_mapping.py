@@ -81,6 +81,12 @@ def test_backend_pose_corrections_move_the_keyframes_anchors(sequence):
     torch.testing.assert_close(m.map.anchors[~own0], a0[~own0])
     assert m.sync_poses() == 0  # nothing moved since
     np.testing.assert_allclose(m.anchor_poses[0], poses[0])
+    # seeding a keyframe again (a resumed run re-queuing it) neither adds anchors nor forgets where they sit
+    n, placed = m.map.n_anchors, m.anchor_poses[1].copy()
+    poses[1] = D @ poses[1]
+    assert m.seed_keyframe(1) == 0 and m.map.n_anchors == n
+    np.testing.assert_allclose(m.anchor_poses[1], placed)
+    assert m.sync_poses() == 1
 
 
 def test_keyframe_store_is_bounded_and_reads_back_from_disk(tmp_path):

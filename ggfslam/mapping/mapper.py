@@ -79,9 +79,13 @@ class Mapper:
         return self.seed_keyframe(kf_id, T_wc, landmarks)
 
     def seed_keyframe(self, kf_id: int, T_wc: np.ndarray | None = None, landmarks: np.ndarray | None = None) -> int:
-        """Anchors from a stored keyframe's depth (and landmarks [L, 3]) at its current pose; returns new anchors."""
+        """Anchors from a stored keyframe's depth (and landmarks [L, 3]) at its current pose; returns new anchors.
+        A keyframe is seeded once: again is a no-op (a checkpoint taken while the worker seeds may list it as
+        still queued)."""
         item = self.store.get(kf_id)
         with self.lock:
+            if kf_id in self.anchor_poses:
+                return 0
             if T_wc is None:
                 T_wc = self.pose_source()[kf_id]
             pts, cols = self._seed_points(item.rgb, item.depth, T_wc, landmarks)
