@@ -156,15 +156,16 @@ def test_mapping_needs_the_orb_tracker():
         config_from_dict({"dataset": {"kind": "synthetic"}, "tracking": {"method": "o3d_odometry"}}, "t")
 
 
-def test_resume_after_an_interruption_gives_the_same_run(tmp_path, monkeypatch):
-    monkeypatch.setenv("GGFSLAM_CACHE", str(tmp_path / "cache"))
-    cfg = config_from_dict({
+def _resume_config(concurrent: bool = False):
+    return config_from_dict({
         "dataset": {"kind": "synthetic", "synthetic": {"n_frames": 24, "width": 320, "height": 240}},
         "tracking": {"keyframe_max_frames": 5},
         "mapping": {"iterations_per_keyframe": 5, "final_iterations": 5, "checkpoint_every": 2, "mesh": False,
-                    "eval_stride": 6, "train_width": 160}}, "t")
-    full = slam.run(cfg, tmp_path / "full", progress=False)
+                    "eval_stride": 6, "train_width": 160, "concurrent": concurrent}}, "t")
 
+
+def _interrupt_at_frame(monkeypatch, frame: int) -> None:
+    """Make ``slam.run``'s dataset raise KeyboardInterrupt (as Ctrl-C would) when it reaches ``frame``."""
     real_open = sources.open_dataset_from_config
 
     def interrupted(c):
@@ -173,7 +174,7 @@ def test_resume_after_an_interruption_gives_the_same_run(tmp_path, monkeypatch):
 
         class Stops(cls):
             def __getitem__(self, i):
-                if i == 17:
+                if i == frame:
                     raise KeyboardInterrupt
                 return cls.__getitem__(self, i)
 
@@ -181,10 +182,19 @@ def test_resume_after_an_interruption_gives_the_same_run(tmp_path, monkeypatch):
         return ds
 
     monkeypatch.setattr(slam, "open_dataset_from_config", interrupted)
+
+
+def test_resume_after_an_interruption_gives_the_same_run(tmp_path, monkeypatch):
+    monkeypatch.setenv("GGFSLAM_CACHE", str(tmp_path / "cache"))
+    cfg = _resume_config()
+    full = slam.run(cfg, tmp_path / "full", progress=False)
+
+    _interrupt_at_frame(monkeypatch, 17)
     with pytest.raises(KeyboardInterrupt):
         slam.run(cfg, tmp_path / "cut", progress=False)
     assert json.loads((tmp_path / "cut" / "run.json").read_text())["status"] == "interrupted"
-    monkeypatch.setattr(slam, "open_dataset_from_config", real_open)
+    monkeypatch.undo()
+    monkeypatch.setenv("GGFSLAM_CACHE", str(tmp_path / "cache"))
     resumed = slam.run(cfg, tmp_path / "cut", progress=False, resume=True)
     assert json.loads((tmp_path / "cut" / "run.json").read_text())["resumed_at_frame"] > 0
     np.testing.assert_array_equal(np.loadtxt(tmp_path / "full" / "trajectory.txt"),
@@ -199,6 +209,22 @@ def test_resume_after_an_interruption_gives_the_same_run(tmp_path, monkeypatch):
 
     pose = pose_from_tum(T[1:])
     torch.testing.assert_close(ma.render(pose).color, mb.render(pose).color, rtol=0, atol=0)
+
+
+def test_concurrent_run_resumes_with_every_keyframe_seeded_once(tmp_path, monkeypatch):
+    monkeypatch.setenv("GGFSLAM_CACHE", str(tmp_path / "cache"))
+    cfg = _resume_config(concurrent=True)
+    _interrupt_at_frame(monkeypatch, 17)
+    with pytest.raises(KeyboardInterrupt):
+        slam.run(cfg, tmp_path / "cut", progress=False)
+    monkeypatch.undo()
+    monkeypatch.setenv("GGFSLAM_CACHE", str(tmp_path / "cache"))
+    out = slam.run(cfg, tmp_path / "cut", progress=False, resume=True)
+    assert json.loads((tmp_path / "cut" / "run.json").read_text())["status"] == "finished"
+    _, m, _ = slam.load_mapper(tmp_path / "cut")
+    n_kf = len(np.loadtxt(tmp_path / "cut" / "keyframes.txt", ndmin=2))
+    assert m.store.ids() == sorted(m.anchor_poses) == list(range(n_kf))
+    assert out["rendering"]["psnr"] > 20
 
 
 def test_abort_stops_the_worker_promptly(sequence):
