@@ -224,7 +224,8 @@ def test_concurrent_run_resumes_with_every_keyframe_seeded_once(tmp_path, monkey
     _, m, _ = slam.load_mapper(tmp_path / "cut")
     n_kf = len(np.loadtxt(tmp_path / "cut" / "keyframes.txt", ndmin=2))
     assert m.store.ids() == sorted(m.anchor_poses) == list(range(n_kf))
-    assert out["rendering"]["psnr"] > 20
+    # every keyframe got its steps and the final refinement ran (idle training may add more)
+    assert out["mapping"]["iterations"] >= n_kf * cfg.mapping.iterations_per_keyframe + cfg.mapping.final_iterations
 
 
 def test_abort_stops_the_worker_promptly(sequence):

@@ -10,19 +10,15 @@ keeps an inverted index (word -> keyframes) so a query only scores keyframes sha
 from __future__ import annotations
 
 import functools
-import os
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
-if not os.environ.get("NUMBA_CACHE_DIR"):  # as ggfslam.render: compiled code is cached outside the repository
-    os.environ["NUMBA_CACHE_DIR"] = os.path.join(os.path.expanduser("~"), ".cache", "ggfslam", "numba")
+import numba
+import numpy as np
 
-import numba  # noqa: E402
-import numpy as np  # noqa: E402
-
-from ggfslam.errors import DatasetError  # noqa: E402
+from ggfslam.errors import DatasetError
 
 __all__ = ["DESCRIPTOR_BYTES", "BowVector", "Vocabulary", "KeyframeDatabase", "bow_score", "hamming_matrix",
            "hamming_knn2"]

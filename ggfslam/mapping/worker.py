@@ -29,7 +29,7 @@ class MappingWorker:
         self.concurrent = concurrent
         self.threads = threads
         self._queue: queue.Queue = queue.Queue()
-        self._pending: dict[int, np.ndarray | None] = {}  # queued, not yet seeded (saved in checkpoints)
+        self._pending: dict[int, np.ndarray | None] = {}  # queued, not yet trained (saved in checkpoints)
         self._pending_lock = threading.Lock()
         self._stop = threading.Event()
         self._abort = threading.Event()
@@ -63,7 +63,7 @@ class MappingWorker:
         self._queue.put(kf_id)
 
     def pending(self) -> dict[int, np.ndarray | None]:
-        """Keyframes queued but not yet seeded (id -> landmarks)."""
+        """Keyframes queued or in training, not yet done (id -> landmarks)."""
         with self._pending_lock:
             return dict(self._pending)
 
@@ -94,9 +94,11 @@ class MappingWorker:
                 with self._pending_lock:
                     landmarks = self._pending.get(kf_id)
                 m.seed_keyframe(kf_id, landmarks=landmarks)
+                m.train(self.cfg.iterations_per_keyframe, focus=kf_id, stop=self._abort)
+                # pending until trained: a checkpoint taken meanwhile re-queues it on resume, where seeding it
+                # again is a no-op and its focused steps are run in full
                 with self._pending_lock:
                     self._pending.pop(kf_id, None)
-                m.train(self.cfg.iterations_per_keyframe, focus=kf_id, stop=self._abort)
         except BaseException as e:  # surfaced to the tracking thread at the next keyframe / finish
             self._error = e
             log.exception("mapping worker failed")
@@ -126,5 +128,4 @@ class MappingWorker:
             self._thread.join()
             self._thread = None
             self._restore_torch_threads()  # the final refinement runs on this thread
-            self._thread = None
         self._raise()

@@ -51,10 +51,7 @@ numba caching: ``cache=True``; unless ``NUMBA_CACHE_DIR`` is set, the cache goes
 """
 from __future__ import annotations
 
-import os
-
-if not os.environ.get("NUMBA_CACHE_DIR"):
-    os.environ["NUMBA_CACHE_DIR"] = os.path.join(os.path.expanduser("~"), ".cache", "ggfslam", "numba")
+# numba's cache location and threading layer: ggfslam/numba_setup.py (applied on package import).
 # Threads and OpenMP: numba's OpenMP layer loads the system libgomp at its first parallel call, which reads
 # GOMP_SPINCOUNT / OMP_WAIT_POLICY then. We leave them alone. Measured (320x240, 100k Gaussians, render +
 # backward, 2 threads): on an idle machine libgomp's default spinning was a little faster than
@@ -62,21 +59,11 @@ if not os.environ.get("NUMBA_CACHE_DIR"):
 # default spinning starves the working thread (228 ms vs 97 ms with GOMP_SPINCOUNT=10000, and 128 ms
 # with one thread). When cores are shared, give each compute thread an
 # explicit budget (numba.set_num_threads(1)) or export GOMP_SPINCOUNT=10000 before starting Python.
-
-import numba
 import numpy as np
 from llvmlite import ir
-
-if not os.environ.get("NUMBA_THREADING_LAYER_PRIORITY") and not os.environ.get("NUMBA_THREADING_LAYER"):
-    # OpenMP first: numba's default order tries TBB first and warns on every run where the installed TBB
-    # is too old, before falling back to OpenMP anyway
-    numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
 from numba import njit, prange, types
 from numba.core import cgutils
 from numba.extending import intrinsic
-
-if not numba.config.CACHE_DIR:  # numba was imported before the variable was set: point it there anyway
-    numba.config.CACHE_DIR = os.environ["NUMBA_CACHE_DIR"]
 
 FMA = {"contract"}  # the only fast-math flag used: fused multiply-add (no reassociation, NaN/Inf semantics kept)
 TILE = 16  # tile side in pixels
