@@ -100,7 +100,7 @@ def test_ssim_matches_pytorch_msssim_values_and_gradients(shape):
     ref = reference(a4, b if b.dim() == 4 else b[None], data_range=1.0, size_average=True)
     (gr,) = torch.autograd.grad(ref, a)
     # pytorch_msssim builds its window in float32 (ours is in the images' dtype): 1e-9-level differences
-    assert float(ours) == pytest.approx(float(ref), abs=1e-7)
+    assert ours.item() == pytest.approx(ref.item(), abs=1e-7)
     torch.testing.assert_close(ga, gr, rtol=1e-5, atol=1e-9)
 
 
