@@ -158,7 +158,7 @@ class Mapper:
     def train(self, n: int, focus: int | None = None, stop: threading.Event | None = None) -> None:
         """n optimization steps; with ``focus`` every other step is on that keyframe, the rest on a window.
         A set ``stop`` event ends the loop after the current step."""
-        ids = [k for k in self.store.ids() if k in self.anchor_poses]  # seeded keyframes only
+        ids = sorted(self.anchor_poses)  # the seeded keyframes (a stored one may still wait in the queue)
         if not ids or n <= 0:
             return
         older = [k for k in ids if k != focus]

@@ -115,17 +115,18 @@ class MappingWorker:
     def abort(self) -> None:
         """Stop the worker after its current step, dropping queued keyframes (a failed or interrupted run)."""
         self._abort.set()
+        self._join()
+
+    def finish(self) -> None:
+        """Process every queued keyframe, then stop the worker."""
+        self._join()
+        self._raise()
+
+    def _join(self) -> None:
+        """Stop the worker once its queue is done (at once if aborted) and give torch its threads back (the
+        worker does so itself when it sees the stop, but not when it aborts or fails first)."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join()
             self._thread = None
             self._restore_torch_threads()
-
-    def finish(self) -> None:
-        """Process every queued keyframe, then stop the worker."""
-        if self._thread is not None:
-            self._stop.set()
-            self._thread.join()
-            self._thread = None
-            self._restore_torch_threads()  # the final refinement runs on this thread
-        self._raise()
