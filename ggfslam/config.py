@@ -335,6 +335,73 @@ class MappingConfig(_Section):
         return self
 
 
+class GGFConfig(_Section):
+    """Geometric-Gaussian Field (METHOD.md §3, §4, §6): planar probability per anchor, AMR and AOF."""
+
+    enabled: bool = True
+    """Compute the planar probability P_2D of every anchor and render it as the planar-weight channel."""
+    amr: bool = True
+    """Adaptive Morphological Regularization: children of planar anchors become surfels aligned with the normal."""
+    aof: bool = True
+    """Asymmetric Optimization Feedback: train the residual net from the children's posterior flatness."""
+    knn: int = 32
+    """Nearest cells (surface points averaged over ``patch_cell``) whose PCA gives normals and curvature."""
+    patch_cell: float = 2.0
+    """Cell size (in voxels) over which surface points are averaged before the KNN (0 = use the anchors)."""
+    tau: float = 0.01
+    """Curvature threshold of the prior: sigmoid(w1 (tau - kappa)). METHOD.md suggests 0.02 for a small patch;
+    0.01 separates walls from 0.2-0.3 m pillars and spheres over the ~0.2 m patch with Kinect-like noise."""
+    w1: float = 500.0
+    """Slope of the curvature term of the prior."""
+    w2: float = 20.0
+    """Weight of the colour variance in the prior: exp(-w2 V_color)."""
+    t0: float = 1.0
+    """Observation scale of the prior: phi(T) = 1 - exp(-T / t0) (1: two views give 0.86)."""
+    hidden: int = 64
+    """Hidden width of the residual net Phi (41 -> hidden -> hidden -> 1)."""
+    planar_threshold: float = 0.6
+    """Anchors with P_2D above this are planar (tau_thresh)."""
+    surfel_eps: float = 1e-3
+    """Thickness of a surfel along its normal, as a fraction of the voxel size."""
+    surfel_radius: float = 0.15
+    """Smallest tangential standard deviation of a surfel, as a fraction of the mean distance to the K nearest anchors."""
+    lambda_morph: float = 0.1
+    """Weight of L_morph in the mapping loss."""
+    lambda_dir: float = 1.0
+    """Weight of the normal alignment term (1 - |r_short . n|) inside L_morph."""
+    lambda_thin: float = 1.0
+    """Weight of the thickness term max(0, s_short - eps) / voxel inside L_morph."""
+    margin: float = 0.2
+    """AOF margin m between posterior and prior that switches evolution / suppression / consolidation."""
+    lambda_con: float = 0.1
+    """AOF loss scale in the consolidation regime."""
+    lr: float = 0.0001
+    """Adam step of the residual net (its own optimizer)."""
+    aof_every: int = 10
+    """Mapping steps between AOF updates."""
+    refresh_every: int = 50
+    """Mapping steps between recomputations of normals and curvature after anchors moved (added or removed
+    anchors always trigger one)."""
+
+    @model_validator(mode="after")
+    def _check(self):
+        for name in ("knn", "hidden", "aof_every", "refresh_every"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1")
+        if self.knn < 3:
+            raise ValueError("knn must be >= 3 (a plane needs three points)")
+        for name in ("planar_threshold", "margin"):
+            if not 0 < getattr(self, name) < 1:
+                raise ValueError(f"{name} must be in (0, 1)")
+        for name in ("surfel_eps", "t0", "lr"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0")
+        for name in ("patch_cell", "w1", "w2", "surfel_radius", "lambda_morph", "lambda_dir", "lambda_thin", "lambda_con"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0")
+        return self
+
+
 class EvalConfig(_Section):
     """Evaluation of a run."""
 
@@ -372,6 +439,8 @@ class Config(_Section):
     """Rasterizer."""
     mapping: MappingConfig = MappingConfig()
     """Gaussian map."""
+    ggf: GGFConfig = GGFConfig()
+    """Geometric-Gaussian Field (planar probability, AMR, AOF) of the Gaussian map."""
     eval: EvalConfig = EvalConfig()
     """Evaluation."""
     runtime: RuntimeConfig = RuntimeConfig()

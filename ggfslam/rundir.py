@@ -17,6 +17,7 @@ TRACKING_LOG_FILE = "tracking.txt"
 RUN_INFO_FILE = "run.json"
 LOG_FILE = "log.txt"
 GAUSSIANS_FILE = "gaussians.ply"
+PLANARITY_FILE = "gaussians_planarity.ply"  # the same Gaussians coloured by P_2D (red = 2D, blue = 3D)
 MESH_FILE = "mesh.ply"
 KEYFRAME_IMAGES_DIR = "keyframes"
 

@@ -21,7 +21,7 @@ from ggfslam.errors import GGFSlamError, RunDirError
 from ggfslam.eval.perf import StageTimer, current_rss_mb, peak_rss_mb
 from ggfslam.eval.trajectory import trajectory_metrics
 from ggfslam.rundir import (
-    CONFIG_FILE, GAUSSIANS_FILE, GRAPH_FILE, KEYFRAME_IMAGES_DIR, MESH_FILE, GROUNDTRUTH_FILE, KEYFRAMES_FILE, LOG_FILE, METRICS_FILE, RUN_INFO_FILE, TRACKING_LOG_FILE, TRAJECTORY_FILE,
+    CONFIG_FILE, GAUSSIANS_FILE, PLANARITY_FILE, GRAPH_FILE, KEYFRAME_IMAGES_DIR, MESH_FILE, GROUNDTRUTH_FILE, KEYFRAMES_FILE, LOG_FILE, METRICS_FILE, RUN_INFO_FILE, TRACKING_LOG_FILE, TRAJECTORY_FILE,
     prepare_run_dir, read_json, require_run_dir, write_json,
 )
 
@@ -80,7 +80,7 @@ def make_mapper(config: Config, camera, tracker, run_dir: Path):
     settings = RenderSettings(backend=config.render.backend)
     slam_map = tracker.map
     return Mapper(config.mapping, camera, settings, lambda: slam_map.poses(), run_dir / KEYFRAME_IMAGES_DIR,
-                  config.runtime.seed)
+                  config.runtime.seed, ggf=config.ggf)
 
 
 def _keyframe_landmarks(tracker, kf_id: int) -> np.ndarray:
@@ -248,11 +248,14 @@ def run(config: Config, out_dir: str | Path, overwrite: bool = False, progress: 
 
 
 def _map_outputs(config: Config, mapper, tracker, dataset, poses: np.ndarray, run_dir: Path) -> dict:
-    """Write gaussians.ply and mesh.ply, render every evaluated frame; returns the mapping/rendering metrics."""
-    from ggfslam.mapping.outputs import write_map_ply, write_rendered_mesh
+    """Write gaussians.ply (and gaussians_planarity.ply with the field) and mesh.ply, render every evaluated
+    frame; returns the mapping/rendering metrics."""
+    from ggfslam.mapping.outputs import write_map_ply, write_planarity_ply, write_rendered_mesh
 
     out = {"mapping": mapper.stats()}
     out["mapping"]["ply_gaussians"] = write_map_ply(mapper, run_dir / GAUSSIANS_FILE)
+    if mapper.ggf is not None:
+        write_planarity_ply(mapper, run_dir / PLANARITY_FILE)
     if config.mapping.mesh:
         kf_poses = [T for _, T in sorted(tracker.map.poses().items())]
         try:
@@ -304,7 +307,7 @@ def load_mapper(run_dir: str | Path):
     camera = run_camera(run_dir)
     poses = ckpt["keyframe_poses"]
     mapper = Mapper(config.mapping, camera, RenderSettings(backend=config.render.backend), lambda: dict(poses),
-                    run_dir / KEYFRAME_IMAGES_DIR, config.runtime.seed)
+                    run_dir / KEYFRAME_IMAGES_DIR, config.runtime.seed, ggf=config.ggf)
     mapper.load_state(ckpt["mapper"])
     return config, mapper, ckpt
 

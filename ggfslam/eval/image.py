@@ -109,6 +109,15 @@ class LPIPS:
             return float(self.net(a, b).mean())
 
 
+def normal_error_deg(normals: np.ndarray, ref: np.ndarray) -> float:
+    """Mean angle (degrees) between unit normal maps [H, W, 3] over pixels where both are defined (non-zero)."""
+    ok = (np.linalg.norm(normals, axis=-1) > 0.5) & (np.linalg.norm(ref, axis=-1) > 0.5)
+    if not ok.any():
+        return float("nan")
+    cos = np.clip((normals[ok] * ref[ok]).sum(-1), -1.0, 1.0)
+    return float(np.degrees(np.arccos(cos)).mean())
+
+
 class PSNR(Metric):
     """PSNR (dB) per image pair; ``process_data((img, ref))``."""
 

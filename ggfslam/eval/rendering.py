@@ -5,7 +5,8 @@ import time
 
 import numpy as np
 
-from ggfslam.eval.image import LPIPS, depth_l1_cm, psnr, ssim_np
+from ggfslam.eval.image import LPIPS, depth_l1_cm, normal_error_deg, psnr, ssim_np
+from ggfslam.geometry.depth import normals_from_depth
 from ggfslam.mapping.keyframe_store import resize_rgbd
 
 
@@ -23,22 +24,32 @@ def nearest_keyframes(frame_indices: np.ndarray, kf_frames: dict[int, int]) -> n
 
 
 def render_metrics(mapper, dataset, poses: np.ndarray, indices: np.ndarray, intr, lpips: LPIPS | None = None) -> dict:
-    """PSNR, SSIM, depth L1 (cm) and LPIPS of renders at ``poses`` [N, 4, 4] against frames ``indices`` [M].
+    """PSNR, SSIM, depth L1 (cm), normal error (degrees) and LPIPS of renders at ``poses`` [N, 4, 4] against
+    frames ``indices`` [M].
 
-    Frames are resized to ``intr``; each frame uses the exposure of its nearest keyframe. Returns the means,
-    the render speed and the per-frame values."""
+    Frames are resized to ``intr``; each frame uses the exposure of its nearest keyframe. Depth L1 and the
+    normal error (rendered normals against normals of the reference depth, both by the same finite
+    differences) use the noise-free depth of the ground-truth mesh where the dataset has it
+    (``frame.meta['depth_gt']``, synthetic sequences with depth noise), else the sensor depth; with
+    ``depth_gt`` the L1 against the sensor depth is also reported (``depth_l1_sensor_cm``).
+    Returns the means, the render speed and the per-frame values."""
     kf_frames = {k: mapper.store.frame_index(k) for k in mapper.store.ids()}
     exposure = nearest_keyframes(np.asarray(indices), kf_frames)
     rows, render_s = [], 0.0
     for i, e in zip(indices, exposure):
         frame = dataset[int(i)]
-        rgb, depth = resize_rgbd(frame.rgb, frame.depth, intr)
+        gt_depth = frame.meta.get("depth_gt")
+        rgb, depth = resize_rgbd(frame.rgb, frame.depth if gt_depth is None else gt_depth, intr)
         t0 = time.perf_counter()
         out = mapper.render(poses[int(i)], intr, exposure_kf=int(e) if e >= 0 else None)
         render_s += time.perf_counter() - t0
         img = out.color.numpy()
+        ref_normals = normals_from_depth(depth, intr.fx, intr.fy, intr.cx, intr.cy)
         row = {"index": int(i), "psnr": psnr(img, rgb), "ssim": ssim_np(img, rgb),
-               "depth_l1_cm": depth_l1_cm(out.depth.numpy(), depth)}
+               "depth_l1_cm": depth_l1_cm(out.depth.numpy(), depth),
+               "normal_error_deg": normal_error_deg(out.normals.numpy(), ref_normals)}
+        if gt_depth is not None:
+            row["depth_l1_sensor_cm"] = depth_l1_cm(out.depth.numpy(), resize_rgbd(frame.rgb, frame.depth, intr)[1])
         if lpips is not None and lpips.available:
             row["lpips"] = lpips(img, rgb)
         rows.append(row)
@@ -49,6 +60,8 @@ def render_metrics(mapper, dataset, poses: np.ndarray, indices: np.ndarray, intr
         return float(np.mean(vals)) if vals else float("nan")
 
     res = {"psnr": mean("psnr"), "ssim": mean("ssim"), "depth_l1_cm": mean("depth_l1_cm"),
+           "normal_error_deg": mean("normal_error_deg"),
+           **({"depth_l1_sensor_cm": mean("depth_l1_sensor_cm")} if any("depth_l1_sensor_cm" in r for r in rows) else {}),
            "lpips": mean("lpips") if lpips is not None and lpips.available else "no weights",
            "frames": n, "width": intr.width, "height": intr.height,
            "render_fps": n / render_s if render_s > 0 else 0.0, "per_frame": rows}

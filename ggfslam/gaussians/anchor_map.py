@@ -11,6 +11,14 @@ Per anchor v (all world frame, metres):
   few hundred iterations per keyframe reach the same images (the MLP still carries all view dependence).
 - ``source_kf`` [A]: keyframe whose depth created the anchor (-1: grown), used to move anchors with it.
 
+What the keyframes saw of each anchor (read by the Geometric-Gaussian Field, ggf/):
+- ``surface`` [A, 3] and ``surface_n`` [A]: mean of the back-projected depth points that fell in the voxel
+  (a point on the surface, unlike the voxel centre) and how many points it averages (``add_surface_points``);
+- ``obs`` [A]: keyframes that saw the anchor, i.e. its surface point projects into the image in front of the
+  keyframe's depth surface (the track count T, ``add_observation``);
+- ``obs_color`` / ``obs_color_sq`` [A, 3]: sums over those keyframes of the colour seen there (a small
+  neighbourhood's mean) and of its square (the colour variance across observations).
+
 Children are decoded by ``ChildDecoder`` (decoders.py). All per-anchor tensors are resized together by
 ``select`` / ``append`` so an optimizer's state can follow them (see ``optim.py``).
 """
@@ -23,6 +31,11 @@ from torch import nn
 from ggfslam.gaussians.decoders import ChildDecoder, DecodedGaussians
 
 PER_ANCHOR_PARAMS = ("features", "log_scale", "offsets", "base_color")
+# buffers resized with the anchors: name -> (shape after the anchor axis, dtype)
+PER_ANCHOR_BUFFERS = {"anchors": ((3,), torch.float32), "source_kf": ((), torch.int64),
+                      "surface": ((3,), torch.float32), "surface_n": ((), torch.float32),
+                      "obs": ((), torch.float32), "obs_color": ((3,), torch.float32),
+                      "obs_color_sq": ((3,), torch.float32)}
 
 
 def voxel_keys(points: np.ndarray, voxel: float) -> np.ndarray:
@@ -45,14 +58,18 @@ class AnchorMap(nn.Module):
         self.k = int(n_offsets)
         self.feature_dim = int(feature_dim)
         self.gen = torch.Generator().manual_seed(seed)
-        self.register_buffer("anchors", torch.zeros(0, 3))  # [A, 3]
-        self.register_buffer("source_kf", torch.zeros(0, dtype=torch.int64))  # [A]
+        for name, (shape, dtype) in PER_ANCHOR_BUFFERS.items():
+            self.register_buffer(name, torch.zeros((0,) + shape, dtype=dtype))
+        # layout_version changes when anchors are added or removed (per-anchor caches must be rebuilt),
+        # geometry_version when anchors move, observed_version when a keyframe observed them
+        self.layout_version = self.geometry_version = self.observed_version = 0
         self.features = nn.Parameter(torch.zeros(0, feature_dim))  # [A, F]
         self.log_scale = nn.Parameter(torch.zeros(0, 3))  # [A, 3]
         self.offsets = nn.Parameter(torch.zeros(0, self.k, 3))  # [A, k, 3]
         self.base_color = nn.Parameter(torch.zeros(0, 3))  # [A, 3] logits
         self.decoder = ChildDecoder(feature_dim, self.k, hidden, view_dependent)
         self._keys = np.zeros(0, dtype=np.int64)  # sorted voxel keys of the anchors
+        self._key_anchor = np.zeros(0, dtype=np.int64)  # anchor index of each sorted key
 
     # --- size and occupancy ------------------------------------------------------------------------
     @property
@@ -60,7 +77,20 @@ class AnchorMap(nn.Module):
         return int(self.anchors.shape[0])
 
     def _rebuild_keys(self) -> None:
-        self._keys = np.sort(voxel_keys(self.anchors.numpy().astype(np.float64), self.voxel_size))
+        keys = voxel_keys(self.anchors.numpy().astype(np.float64), self.voxel_size)
+        self._key_anchor = np.argsort(keys, kind="stable")
+        self._keys = keys[self._key_anchor]
+
+    def anchor_of_points(self, points: np.ndarray) -> np.ndarray:
+        """Index [N] of the anchor whose voxel holds each point [N, 3] (-1: no anchor there)."""
+        out = np.full(len(points), -1, np.int64)
+        if len(points) == 0 or len(self._keys) == 0:
+            return out
+        keys = voxel_keys(np.asarray(points, np.float64), self.voxel_size)
+        pos = np.searchsorted(self._keys, keys).clip(max=len(self._keys) - 1)
+        hit = self._keys[pos] == keys
+        out[hit] = self._key_anchor[pos[hit]]
+        return out
 
     def free_voxels(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Unique voxels of points [N, 3] not yet holding an anchor: (first point index [M], key [M])."""
@@ -107,22 +137,25 @@ class AnchorMap(nn.Module):
         """Append anchors (a dict from ``new_anchor_values``); returns how many were added."""
         n = int(values["anchors"].shape[0])
         with torch.no_grad():
-            self.anchors = torch.cat([self.anchors, values["anchors"]])
-            self.source_kf = torch.cat([self.source_kf, values["source_kf"]])
+            for name, (shape, dtype) in PER_ANCHOR_BUFFERS.items():
+                default = values["anchors"] if name == "surface" else torch.zeros((n,) + shape, dtype=dtype)
+                setattr(self, name, torch.cat([getattr(self, name), values.get(name, default).to(dtype)]))
             for name in PER_ANCHOR_PARAMS:
                 old = getattr(self, name)
                 setattr(self, name, nn.Parameter(torch.cat([old.detach(), values[name].to(old.dtype)])))
         self._rebuild_keys()
+        self.layout_version += 1
         return n
 
     def select(self, keep: torch.Tensor) -> None:
         """Keep only the anchors where keep [A] (bool) is True."""
         with torch.no_grad():
-            self.anchors = self.anchors[keep]
-            self.source_kf = self.source_kf[keep]
+            for name in PER_ANCHOR_BUFFERS:
+                setattr(self, name, getattr(self, name)[keep])
             for name in PER_ANCHOR_PARAMS:
                 setattr(self, name, nn.Parameter(getattr(self, name).detach()[keep]))
         self._rebuild_keys()
+        self.layout_version += 1
 
     def transform_anchors(self, mask: torch.Tensor, T: np.ndarray) -> None:
         """Move anchors [mask] rigidly by T [4, 4] (world to world), rotating their offsets with them."""
@@ -130,8 +163,47 @@ class AnchorMap(nn.Module):
         t = torch.from_numpy(T[:3, 3].astype(np.float32))
         with torch.no_grad():
             self.anchors[mask] = self.anchors[mask] @ R.T + t
+            self.surface[mask] = self.surface[mask] @ R.T + t
             self.offsets[mask] = self.offsets[mask] @ R.T
         self._rebuild_keys()
+        self.geometry_version += 1
+
+    @torch.no_grad()
+    def add_surface_points(self, points: np.ndarray) -> int:
+        """Average depth points [N, 3] (world) into the surface point of the anchor whose voxel holds each;
+        returns how many anchors received points."""
+        a = self.anchor_of_points(points)
+        hit = a >= 0
+        if not hit.any():
+            return 0
+        a = a[hit]
+        n = self.n_anchors
+        cnt = np.bincount(a, minlength=n).astype(np.float64)  # [A]
+        seen = np.nonzero(cnt)[0]
+        psum = np.stack([np.bincount(a, points[hit, j], n) for j in range(3)], 1)[seen]  # [S, 3]
+        idx, c = torch.from_numpy(seen), torch.from_numpy(cnt[seen])
+        n_old = self.surface_n[idx].double()
+        surf = (self.surface[idx].double() * n_old[:, None] + torch.from_numpy(psum)) / (n_old + c)[:, None]
+        self.surface[idx] = surf.float()
+        self.surface_n[idx] += c.float()
+        self.observed_version += 1
+        return len(seen)
+
+    @torch.no_grad()
+    def add_observation(self, index: np.ndarray, colors: np.ndarray) -> None:
+        """One keyframe saw anchors ``index`` [S] with colours [S, 3]: count it and add to the colour sums."""
+        idx = torch.from_numpy(np.asarray(index, np.int64))
+        col = torch.from_numpy(np.asarray(colors, np.float32))
+        self.obs[idx] += 1
+        self.obs_color[idx] += col
+        self.obs_color_sq[idx] += col ** 2
+        self.observed_version += 1
+
+    def color_variance(self) -> torch.Tensor:
+        """V_color [A]: variance across observations of the mean colour in each voxel (mean over RGB)."""
+        t = self.obs.clamp_min(1)[:, None]
+        m = self.obs_color / t
+        return (self.obs_color_sq / t - m * m).clamp_min(0).mean(dim=1)
 
     # --- decoding ----------------------------------------------------------------------------------
     def visible_anchors(self, T_cw: np.ndarray, intr, near: float = 0.05, margin: float = 0.15) -> torch.Tensor:
@@ -159,7 +231,8 @@ class AnchorMap(nn.Module):
         """Sizes and settings needed to rebuild an empty map before ``load_state_dict``."""
         return {"voxel_size": self.voxel_size, "n_offsets": self.k, "feature_dim": self.feature_dim,
                 "hidden": self.decoder.hidden, "view_dependent": self.decoder.view_dependent,
-                "n_anchors": self.n_anchors}
+                "n_anchors": self.n_anchors, "layout_version": self.layout_version,
+                "geometry_version": self.geometry_version, "observed_version": self.observed_version}
 
     @classmethod
     def from_state(cls, extra: dict, state: dict) -> AnchorMap:
@@ -167,12 +240,15 @@ class AnchorMap(nn.Module):
         m = cls(extra["voxel_size"], extra["n_offsets"], extra["feature_dim"], extra["hidden"],
                 extra["view_dependent"])
         n = extra["n_anchors"]
-        m.anchors = torch.zeros(n, 3)
-        m.source_kf = torch.zeros(n, dtype=torch.int64)
+        for name, (shape, dtype) in PER_ANCHOR_BUFFERS.items():
+            setattr(m, name, torch.zeros((n,) + shape, dtype=dtype))
         for name in PER_ANCHOR_PARAMS:
             p = getattr(m, name)
             setattr(m, name, nn.Parameter(torch.zeros((n,) + tuple(p.shape[1:]))))
         m.load_state_dict(state)
         m._rebuild_keys()
+        m.layout_version = extra.get("layout_version", 0)
+        m.geometry_version = extra.get("geometry_version", 0)
+        m.observed_version = extra.get("observed_version", 0)
         return m
 

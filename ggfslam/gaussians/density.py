@@ -100,6 +100,7 @@ class DensityControl:
         vals["log_scale"] = amap.log_scale[src].detach().clone()
         vals["base_color"] = amap.base_color[src].detach().clone()
         vals["source_kf"] = amap.source_kf[src].clone()  # grown anchors move with their parent's keyframe
+        vals["surface"] = torch.from_numpy(pos[first[order]]).float()  # the proposing child's mean, until observed
         olds = {name: getattr(amap, name) for name in PER_ANCHOR_PARAMS}
         n = amap.append(vals)
         if opt is not None:

@@ -8,7 +8,12 @@
   adjustment or a loop closure moved a keyframe by more than ``pose_update_threshold``, the anchors it
   created move rigidly with it, so corrections move the map instead of leaving a ghost copy.
 - Loss (METHOD.md §5): ``0.8 L1 + 0.2 (1 - SSIM) + 0.5 L_depth + 0.05 L_normal`` plus Scaffold-GS's volume
-  regulariser; growing and pruning every ``densify_every`` steps.
+  regulariser, plus ``0.1 L_morph`` with the Geometric-Gaussian Field; growing and pruning every
+  ``densify_every`` steps.
+- With ``ggf.enabled`` (ggf/), every keyframe's depth is recorded per anchor voxel (``AnchorMap.observe``),
+  each step renders P_2D as the planar-weight channel (``RenderOutput.extras[..., 0]``), AMR turns the
+  children of planar anchors into surfels (training, rendering and export alike) and AOF trains the field's
+  residual net after the Gaussians' step.
 Every public method takes ``self.lock``, so a worker thread can train while another thread renders or saves.
 """
 from __future__ import annotations
@@ -18,17 +23,19 @@ import time
 from pathlib import Path
 from typing import Callable
 
+import cv2
 import numpy as np
 import torch
 from torch import nn
 
-from ggfslam.config import MappingConfig
+from ggfslam.config import GGFConfig, MappingConfig
 from ggfslam.gaussians.anchor_map import AnchorMap
 from ggfslam.gaussians.decoders import DecodedGaussians
 from ggfslam.gaussians.density import DensityControl
 from ggfslam.gaussians.optim import make_adam, replace_param
 from ggfslam.geometry.depth import backproject, transform_points
 from ggfslam.geometry.se3 import invert, rotation_angle
+from ggfslam.ggf import GeometricGaussianField, planarity_colors
 from ggfslam.mapping.keyframe_store import KeyframeStore, scaled_intrinsics
 from ggfslam.mapping.losses import depth_loss, normal_loss, photometric_loss
 from ggfslam.render.api import rasterize
@@ -41,8 +48,10 @@ class Mapper:
     """Structured Gaussian map + its optimizer, trained from stored keyframes (see the module docstring)."""
 
     def __init__(self, cfg: MappingConfig, camera, settings: RenderSettings, pose_source: PoseSource,
-                 store_dir: str | Path, seed: int = 0):
+                 store_dir: str | Path, seed: int = 0, ggf: GGFConfig | None = None):
         self.cfg, self.settings, self.pose_source = cfg, settings, pose_source
+        self.ggf_cfg = ggf if ggf is not None else GGFConfig(enabled=False)
+        self.ggf = GeometricGaussianField(self.ggf_cfg, cfg.voxel_size, seed) if self.ggf_cfg.enabled else None
         self.intr = scaled_intrinsics(camera, cfg.train_width)
         self.store = KeyframeStore(store_dir, self.intr, cfg.keyframe_cache)
         self.map = AnchorMap(cfg.voxel_size, cfg.n_offsets, cfg.feature_dim, cfg.hidden, cfg.view_dependent, seed)
@@ -90,6 +99,7 @@ class Mapper:
                 T_wc = self.pose_source()[kf_id]
             pts, cols = self._seed_points(item.rgb, item.depth, T_wc, landmarks)
             added = self._append_anchors(pts, cols, kf_id)
+            self._observe(item.rgb, item.depth, T_wc)
             self.anchor_poses[kf_id] = T_wc.copy()
             if kf_id not in self.exposure_row:
                 self._add_exposure(kf_id)
@@ -111,6 +121,30 @@ class Mapper:
             pts = np.concatenate([pts, landmarks[ok][inside]])
             cols = np.concatenate([cols, rgb[v[inside], u[inside]]])
         return pts, cols
+
+    def _observe(self, rgb: np.ndarray, depth: np.ndarray, T_wc: np.ndarray) -> None:
+        """What a keyframe tells the anchors (AnchorMap's module docstring): its depth pixels (training
+        resolution) sharpen the voxels' surface points; the anchors it sees count one observation and record
+        the colour there."""
+        i = self.intr
+        valid = depth > 0
+        # edge-preserving smoothing: sensor noise (~1-2 cm at 3 m) would otherwise spread a wall's points over
+        # several voxel layers and make it look curved
+        smooth = cv2.bilateralFilter(depth.astype(np.float32), 7, 0.05, 2.0)
+        smooth = np.where(valid & (np.abs(smooth - depth) < 0.1), smooth, depth)
+        self.map.add_surface_points(transform_points(T_wc, backproject(smooth, i.fx, i.fy, i.cx, i.cy)[valid]))
+        pc = transform_points(invert(T_wc), self.map.surface.numpy().astype(np.float64))  # [A, 3] camera
+        z = pc[:, 2]
+        front = np.nonzero(z > self.settings.near_plane)[0]
+        u = np.rint(i.fx * pc[front, 0] / z[front] + i.cx).astype(np.int64)
+        v = np.rint(i.fy * pc[front, 1] / z[front] + i.cy).astype(np.int64)
+        inside = (u >= 0) & (u < i.width) & (v >= 0) & (v < i.height)
+        front, u, v = front[inside], u[inside], v[inside]
+        d = smooth[v, u]
+        # seen: on the keyframe's depth surface, not behind it (occluded) nor in front of it (free space)
+        seen = (d > 0) & (np.abs(z[front] - d) < np.maximum(2 * self.cfg.voxel_size, 0.03 * d))
+        blurred = cv2.blur(rgb, (3, 3))
+        self.map.add_observation(front[seen], blurred[v[seen], u[seen]])
 
     def _append_anchors(self, pts: np.ndarray, cols: np.ndarray, source_kf: int) -> int:
         n_free = self.cfg.max_anchors - self.map.n_anchors
@@ -180,6 +214,19 @@ class Mapper:
         mask = self.map.visible_anchors(invert(T_wc), intr, self.settings.near_plane)
         return self.map.decode(T_wc[:3, 3], mask), mask
 
+    def _refresh_field(self) -> None:
+        """Bring the field's anchor geometry up to date with the map (cameras orient the normals)."""
+        centres = {k: T[:3, 3] for k, T in self.anchor_poses.items()}
+        self.ggf.refresh(self.map, centres, self.iteration)
+
+    def _field(self, g: DecodedGaussians) -> tuple[DecodedGaussians, torch.Tensor, torch.Tensor | None]:
+        """AMR on decoded children, L_morph and the P_2D channel [G, 1] (g, 0, None without the field)."""
+        if self.ggf is None:
+            return g, torch.zeros(()), None
+        self._refresh_field()
+        g, l_morph = self.ggf.shape(g, self.map)
+        return g, l_morph, self.ggf.p2d()[g.anchor_index][:, None]
+
     def step(self, kf_id: int, poses: dict[int, np.ndarray] | None = None) -> dict[str, float]:
         """One Adam step on keyframe ``kf_id``; returns the loss terms."""
         t0 = time.perf_counter()
@@ -196,8 +243,9 @@ class Mapper:
             g, mask = self._decode(T_wc, self.intr)
             if len(g) == 0:
                 return {}
+            g, l_morph, p2d = self._field(g)
             out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, self.intr,
-                            torch.from_numpy(invert(T_wc)).float(), settings=self.settings)
+                            torch.from_numpy(invert(T_wc)).float(), extras=p2d, settings=self.settings)
             color = self._expose(out.color, kf_id)
             gt_rgb = torch.from_numpy(item.rgb)
             gt_depth = torch.from_numpy(item.depth)
@@ -211,17 +259,21 @@ class Mapper:
             if c.lambda_scale > 0:
                 vol = g.scales.prod(dim=1).mean() / self.map.voxel_size ** 3
                 loss = loss + c.lambda_scale * vol
+            if self.ggf is not None and self.ggf_cfg.lambda_morph > 0:
+                loss = loss + self.ggf_cfg.lambda_morph * l_morph
             loss.backward()
             self.density.accumulate(g, out.visible, out.means2d_grad(), mask, (self.intr.width, self.intr.height))
             self.opt.step()
             self.opt.zero_grad(set_to_none=True)
             self.iteration += 1
+            if self.ggf is not None and self.ggf_cfg.aof and self.iteration % self.ggf_cfg.aof_every == 0:
+                self.ggf.feedback(g)
             if c.densify_every and self.iteration >= c.densify_from and self.iteration % c.densify_every == 0:
                 self.grown += self.density.grow(self.opt)
                 self.pruned += self.density.prune(self.opt)
             self.train_seconds += time.perf_counter() - t0
             self.last_losses = {"loss": loss.item(), "photo": l_photo.item(), "depth": l_depth.item(),
-                                "normal": l_normal.item()}
+                                "normal": l_normal.item(), "morph": float(l_morph)}
             return self.last_losses
 
     def _expose(self, color: torch.Tensor, kf_id: int | None) -> torch.Tensor:
@@ -238,21 +290,50 @@ class Mapper:
         intr = intr or self.intr
         with self.lock:
             g, _ = self._decode(T_wc, intr)
+            g, _, p2d = self._field(g)
             out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, intr,
-                            torch.from_numpy(invert(T_wc)).float(), settings=self.settings)
+                            torch.from_numpy(invert(T_wc)).float(), extras=p2d, settings=self.settings)
             out.color = self._expose(out.color, exposure_kf).clamp(0, 1)
             return out
 
     @torch.no_grad()
     def export_gaussians(self) -> DecodedGaussians:
-        """Every child decoded view-independently (the view inputs zeroed) for PLY export."""
+        """Every child decoded view-independently (the view inputs zeroed, AMR applied) for PLY export."""
         with self.lock:
             view = self.map.decoder.view_dependent
             self.map.decoder.view_dependent = False
             try:
-                return self.map.decode(np.zeros(3))
+                g = self.map.decode(np.zeros(3))
             finally:
                 self.map.decoder.view_dependent = view
+            return self._field(g)[0]
+
+    @torch.no_grad()
+    def planarity(self) -> dict[str, torch.Tensor]:
+        """Per anchor [A]: P_2D, P_prior, posterior flatness of its exported children (1 - s_min / s_mid),
+        curvature, colour variance, observations, and surface points [A, 3] (needs ``ggf.enabled``)."""
+        from ggfslam.ggf.aof import posterior_flatness
+
+        if self.ggf is None:
+            raise RuntimeError("the map has no Geometric-Gaussian Field (ggf.enabled is false)")
+        with self.lock:
+            g = self.export_gaussians()
+            post, count = posterior_flatness(g.scales, g.anchor_index, self.map.n_anchors)
+            geo = self.ggf.geom
+            return {"p2d": self.ggf.p2d().clone(), "prior": self.ggf.prior.clone(), "posterior": post,
+                    "children": count, "curvature": geo.curvature.clone(), "color_var": geo.color_var.clone(),
+                    "obs": geo.obs.clone(), "surface": self.map.surface.clone(),
+                    "surface_n": self.map.surface_n.clone()}
+
+    @torch.no_grad()
+    def export_planarity(self) -> DecodedGaussians:
+        """The exported children coloured by their anchor's P_2D (red = 2D, blue = 3D), as in the paper's Fig. 4."""
+        with self.lock:
+            g = self.export_gaussians()
+            if self.ggf is None:
+                raise RuntimeError("the map has no Geometric-Gaussian Field (ggf.enabled is false)")
+            g.colors = planarity_colors(self.ggf.p2d()[g.anchor_index])
+            return g
 
     def n_gaussians(self) -> int:
         """Children with positive opacity, decoded view-independently."""
@@ -264,7 +345,8 @@ class Mapper:
                 "iterations_per_s": self.iteration / self.train_seconds if self.train_seconds else 0.0,
                 "anchors": self.map.n_anchors, "gaussians": self.n_gaussians(), "anchors_grown": self.grown,
                 "anchors_pruned": self.pruned, "keyframes": len(self.store),
-                "train_width": self.intr.width, "train_height": self.intr.height, "last_losses": self.last_losses}
+                "train_width": self.intr.width, "train_height": self.intr.height, "last_losses": self.last_losses,
+                **({"ggf": self.ggf.stats()} if self.ggf is not None else {})}
 
     # --- checkpoint ----------------------------------------------------------------------------------
     def state(self) -> dict:
@@ -277,7 +359,8 @@ class Mapper:
                     "poses": {k: v.copy() for k, v in self._poses.items()},
                     "rng": self.rng.bit_generator.state, "iteration": self.iteration,
                     "train_seconds": self.train_seconds, "grown": self.grown, "pruned": self.pruned,
-                    "generator": self.map.gen.get_state()}
+                    "generator": self.map.gen.get_state(),
+                    "ggf": self.ggf.state() if self.ggf is not None else None}
 
     def load_state(self, st: dict) -> None:
         """Restore ``state()`` into this mapper (same config and camera)."""
@@ -298,3 +381,8 @@ class Mapper:
             self.rng.bit_generator.state = st["rng"]
             self.iteration, self.train_seconds = st["iteration"], st["train_seconds"]
             self.grown, self.pruned = st["grown"], st["pruned"]
+            if self.ggf is not None:
+                if st.get("ggf") is None:
+                    raise ValueError("checkpoint has no Geometric-Gaussian Field state but ggf.enabled is true: "
+                                     "resume with the configuration the run started with")
+                self.ggf.load_state(st["ggf"])

@@ -16,6 +16,13 @@ def write_map_ply(mapper, path: str | Path) -> int:
     return len(g)
 
 
+def write_planarity_ply(mapper, path: str | Path) -> int:
+    """The same Gaussians as ``write_map_ply``, coloured by their anchor's P_2D (red = 2D, blue = 3D)."""
+    g = mapper.export_planarity()
+    write_gaussians_ply(path, g.means, g.quats, g.scales, g.opacities, g.colors)
+    return len(g)
+
+
 def fuse_rendered_mesh(mapper, poses: list[np.ndarray], intr, voxel: float, depth_max: float = 8.0):
     """TSDF-fuse the map's rendered depth and colour at poses (camera-to-world) into a triangle mesh."""
     tsdf = TSDFFusion(intr, voxel_size=voxel, depth_max=depth_max)

@@ -1,0 +1,103 @@
+"""Ablation of the Geometric-Gaussian Field: the same runs with the field off, on alone, with AMR, and with
+AMR and AOF; plus, on synthetic scenes, how many anchors on planar faces and on curved objects end planar.
+
+Sequences as in ``bench_mapping.py`` (``synthetic:N``, ``replica:N``, dataset folders, config files). Each
+variant is a whole ``ggfslam.slam.run`` in a fresh process. Reported per run: PSNR, SSIM, depth L1 (cm)
+and normal error (degrees) against the ground-truth mesh depth where the sequence has it, ATE, mapping
+iterations/s and the relative mapping time per iteration against the run with the field off. On synthetic
+sequences (ground-truth mesh with planar/curved labels): the fraction of anchors with P_2D > threshold
+among anchors within 5 cm of a planar face and of a curved object (``ggfslam.eval.planarity``).
+
+One JSON document goes to stdout; progress goes to stderr.
+
+Usage: ``python benchmarks/bench_ggf.py synthetic:120 replica:200 [--variants off,ggf_amr_aof] [--set K=V]``
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_mapping import _run_one  # noqa: E402
+from bench_tracking import finish_report, in_fresh_process, log, prepared_sequences, start_report  # noqa: E402
+
+VARIANTS = {
+    "off": {"enabled": False},
+    "ggf": {"enabled": True, "amr": False, "aof": False},
+    "ggf_amr": {"enabled": True, "amr": True, "aof": False},
+    "ggf_amr_aof": {"enabled": True, "amr": True, "aof": True},
+}
+
+
+def _run_variant(raw: dict, out_dir: str) -> dict:
+    """One run (in a worker process) plus the planarity of its anchors against a synthetic scene's mesh."""
+    row = _run_one(raw, out_dir)
+    os.dup2(2, 1)
+    from ggfslam import slam
+
+    cfg, mapper, _ = slam.load_mapper(out_dir)
+    row["ggf"] = mapper.stats().get("ggf")
+    if mapper.ggf is not None and cfg.dataset.kind == "synthetic" and cfg.dataset.synthetic.source == "procedural":
+        from ggfslam.data.synthetic import make_scene
+        from ggfslam.eval.planarity import planar_fractions
+
+        syn = cfg.dataset.synthetic
+        scene = make_scene(syn.seed, syn.textureless_wall)
+        pl = mapper.planarity()
+        row["planarity"] = planar_fractions(pl["surface"].numpy(), pl["p2d"].numpy(), scene.mesh,
+                                            scene.triangle_planar, cfg.ggf.planar_threshold)
+        row["planarity_prior"] = planar_fractions(pl["surface"].numpy(), pl["prior"].numpy(), scene.mesh,
+                                                  scene.triangle_planar, cfg.ggf.planar_threshold)
+    return row
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the ablation and print its JSON report; returns the exit status (1 if any run failed)."""
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("sequences", nargs="+", help="dataset folder, config .yaml, synthetic:N or replica:N")
+    ap.add_argument("--variants", default=",".join(VARIANTS), help=f"comma-separated subset of {list(VARIANTS)}")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                    help="config override applied to every run (repeatable)")
+    ap.add_argument("--keep", metavar="DIR", help="keep the run directories under DIR (default: discarded)")
+    args = ap.parse_args(argv)
+    variants = [v.strip() for v in args.variants.split(",") if v.strip()]
+    unknown = [v for v in variants if v not in VARIANTS]
+    if unknown:
+        ap.error(f"unknown variants {unknown}; choose from {list(VARIANTS)}")
+
+    report, stdout = start_report("ggf", args.overrides, variants=variants)
+    scratch = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="bench_ggf-"))
+    ready, failed = prepared_sequences(args.sequences, args.overrides, report)
+    for spec, raw in ready:
+        base_rate = None
+        for v in variants:
+            run_raw = {**raw, "ggf": {**raw.get("ggf", {}), **VARIANTS[v]}}
+            out = scratch / f"{str(raw.get('name', 'run')).replace('/', '_')}-{v}"
+            log(f"{spec} [{v}] -> {out}")
+            row = {"sequence": spec, "variant": v}
+            try:
+                row.update(in_fresh_process(_run_variant, run_raw, str(out)))
+            except Exception as e:  # one failed run must not lose the others' figures
+                log(f"{spec} [{v}] failed: {type(e).__name__}: {e}")
+                row["error"] = f"{type(e).__name__}: {e}"
+                failed = True
+            if "error" not in row:
+                rate = row["mapping_iterations_per_s"]
+                base_rate = rate if v == "off" else base_rate
+                if base_rate:
+                    row["time_per_iteration_vs_off"] = base_rate / rate
+                pl = row.get("planarity", {})
+                log(f"  PSNR {row['psnr']:.2f} dB, depth L1 {row['depth_l1_cm']:.2f} cm, normal "
+                    f"{row['normal_error_deg']:.1f} deg, {rate:.2f} it/s"
+                    + (f", planar faces {pl['planar_face_fraction']:.2f}, curved {pl['curved_object_fraction']:.2f}"
+                       if pl else ""))
+            report["runs"].append(row)
+    return finish_report(report, stdout, scratch, bool(args.keep), failed)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,120 @@
+"""Geometric features of the anchors (METHOD.md §3): F_in = [gamma(p) (36), n (3), kappa (1), T (1)].
+
+Everything is computed from the anchors' surface points (``AnchorMap.surface``: the mean of the depth points
+that fell in each voxel, so a plane's anchors lie exactly on it, unlike their voxel centres):
+- ``gamma(p)``: sin and cos of ``2^i * pi * p`` for i = 0..5 on x, y, z (world metres) -> 36 values;
+- ``n``: unit normal, the PCA direction of least variance of the K nearest points (Open3D KNN) of the
+  surface points averaged over cells of ``patch_cell`` voxels, each weighted by the depth points it stands
+  for, oriented towards the camera of the keyframe that created the anchor;
+- ``kappa``: curvature, the smallest PCA eigenvalue over the sum of the three (0: plane, 1/3: isotropic);
+- ``T``: keyframes that observed the anchor's voxel;
+- ``spacing``: mean distance to the 8 nearest anchors (the surfel radius of AMR follows it).
+The patch is wide (24 cells of 2 voxels: ~0.2 m at a 4 cm voxel): with depth noise of 1-2 cm at 3 m, a
+smaller patch cannot tell a wall from a 0.2 m pillar (curvature grows with the patch radius squared, noise
+shrinks); averaging cells first makes that patch cost 24 neighbours instead of ~100.
+The network input carries ``kappa / tau`` (clipped to 10) and ``log(1 + T)`` instead of the raw values so its
+inputs have comparable ranges; the prior uses the raw values.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+import torch
+
+N_FREQ = 6
+F_IN = 6 * N_FREQ + 3 + 1 + 1  # 41
+
+
+def positional_encoding(p: torch.Tensor, n_freq: int = N_FREQ) -> torch.Tensor:
+    """gamma(p) [A, 6 n_freq]: sin then cos of 2^i pi p for i < n_freq, frequency-major, x y z inner."""
+    f = (2.0 ** torch.arange(n_freq, dtype=p.dtype)) * torch.pi  # [n_freq]
+    x = (p[:, None, :] * f[None, :, None]).reshape(p.shape[0], -1)  # [A, 3 n_freq]
+    return torch.cat([torch.sin(x), torch.cos(x)], dim=1)
+
+
+def _knn(data: np.ndarray, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Open3D KNN: indices [Q, k] into data [N, 3] and distances [Q, k] of queries [Q, 3]."""
+    nns = o3d.core.nns.NearestNeighborSearch(o3d.core.Tensor(np.ascontiguousarray(data, np.float32)))
+    nns.knn_index()
+    idx, d2 = nns.knn_search(o3d.core.Tensor(np.ascontiguousarray(queries, np.float32)), k)
+    return idx.numpy(), np.sqrt(np.maximum(d2.numpy(), 0.0))
+
+
+def cell_means(points: np.ndarray, weights: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted mean point [C, 3] and total weight [C] of the points [N, 3] in each occupied cubic cell."""
+    ijk = np.floor(points / cell).astype(np.int64)
+    _, inv = np.unique(ijk, axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    w = np.bincount(inv, weights)
+    mean = np.stack([np.bincount(inv, weights * points[:, j]) for j in range(3)], 1) / w[:, None]
+    return mean, w
+
+
+def local_geometry(points: np.ndarray, k: int, weights: np.ndarray | None = None, cell: float | None = None,
+                   k_spacing: int = 8, chunk: int = 32768) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Weighted PCA of the k nearest neighbours of every point [N, 3]: unit normals [N, 3] (unoriented),
+    curvature [N] = lambda_min / sum(lambda), and the mean distance to the ``k_spacing`` nearest points [N].
+
+    ``weights`` [N] (default 1): how many samples each point stands for (an anchor's surface point averages
+    many depth points; sparse outliers of a noisy surface average few and so count little). With ``cell``
+    the neighbours are the weighted means of the points in cubic cells of that size (a coarser cloud), so a
+    wide patch costs k neighbours instead of k * (points per cell)."""
+    n = len(points)
+    if n == 0:
+        return np.zeros((0, 3), np.float32), np.zeros(0, np.float32), np.zeros(0, np.float32)
+    pts = np.asarray(points, dtype=np.float64)
+    w_pts = np.ones(n) if weights is None else np.maximum(np.asarray(weights, np.float64), 1e-6)
+    cloud, w_cloud = (pts, w_pts) if cell is None else cell_means(pts, w_pts, cell)
+    k = min(k, len(cloud))
+    normals = np.zeros((n, 3), np.float32)
+    curvature = np.zeros(n, np.float32)
+    for s in range(0, n, chunk):  # bounded memory: [chunk, k, 3] at a time
+        q = pts[s:s + chunk]
+        idx, _ = _knn(cloud, q, k)
+        w = w_cloud[idx]
+        w /= w.sum(axis=1, keepdims=True)
+        nb = (cloud[idx] - q[:, None, :]).astype(np.float32)  # [C, k, 3], relative for precision
+        wf = w.astype(np.float32)
+        mu = np.einsum("ck,cki->ci", wf, nb)
+        cov = np.matmul(nb.transpose(0, 2, 1) * wf[:, None, :], nb) - mu[:, :, None] * mu[:, None, :]  # [C, 3, 3]
+        evals, evecs = np.linalg.eigh(cov.astype(np.float64))  # ascending eigenvalues
+        normals[s:s + chunk] = evecs[:, :, 0]
+        total = evals.sum(axis=1)
+        curvature[s:s + chunk] = np.where(total > 0, evals[:, 0].clip(min=0) / np.maximum(total, 1e-30), 0.0)
+    ks = min(k_spacing + 1, n)
+    spacing = _knn(pts, pts, ks)[1][:, 1:].mean(axis=1) if ks > 1 else np.zeros(n)
+    return normals, curvature, spacing.astype(np.float32)
+
+
+@dataclass
+class AnchorGeometry:
+    """Per-anchor geometric inputs of the field, valid for one layout of the anchor map."""
+
+    normals: torch.Tensor  # [A, 3] unit, towards the anchor's source camera
+    curvature: torch.Tensor  # [A]
+    spacing: torch.Tensor  # [A] metres
+    color_var: torch.Tensor  # [A] V_color
+    obs: torch.Tensor  # [A] T
+    features: torch.Tensor  # [A, 41] F_in (network-scaled, see the module docstring)
+
+
+def anchor_geometry(amap, camera_centers: dict[int, np.ndarray], k: int, tau: float, cell: float | None = None
+                    ) -> AnchorGeometry:
+    """Normals, curvature, spacing, colour variance, track count and F_in of every anchor of ``amap``;
+    ``camera_centers`` maps keyframe id -> camera centre [3] (world) to orient the normals."""
+    surf = amap.surface.numpy()  # [A, 3]
+    normals, curv, spacing = local_geometry(surf, k, amap.surface_n.numpy(), cell)
+    # orient towards the camera that created the anchor (grown anchors carry their parent's keyframe)
+    src = amap.source_kf.numpy()
+    eye = np.zeros_like(surf)
+    for kf, c in camera_centers.items():
+        eye[src == kf] = c
+    flip = np.einsum("ni,ni->n", normals, eye - surf) < 0
+    normals[flip] *= -1
+    n_t, c_t = torch.from_numpy(normals), torch.from_numpy(curv)
+    obs = amap.obs.clone()
+    feats = torch.cat([positional_encoding(amap.surface), n_t, (c_t / tau).clamp(max=10.0)[:, None],
+                       torch.log1p(obs)[:, None]], dim=1)  # [A, 41]
+    return AnchorGeometry(n_t, c_t, torch.from_numpy(spacing), amap.color_variance(), obs, feats)

@@ -1,0 +1,151 @@
+"""The Geometric-Gaussian Field of a Gaussian map: features, prior, residual net, AMR and AOF together.
+
+``GeometricGaussianField`` is what the mapper talks to:
+- ``refresh(amap, cameras, iteration)`` recomputes the anchors' geometry (features.py) when anchors were
+  added, removed or moved (a pose correction), and at most every ``refresh_every`` steps when keyframes
+  only observed them again;
+- ``p2d()`` gives P_2D [A] of every anchor (cached until the net or the geometry changes; no gradient);
+- ``shape(g)`` applies AMR to decoded children and returns L_morph;
+- ``feedback(g)`` runs one AOF step of the residual net from the children the mapper just optimized; only
+  anchors whose children were free (not under AMR) give evidence.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ggfslam.config import GGFConfig
+from ggfslam.gaussians.decoders import DecodedGaussians
+from ggfslam.ggf.amr import morph_loss, quat_z_to, surfel_shape
+from ggfslam.ggf.aof import EVOLUTION, SUPPRESSION, feedback_loss, feedback_targets, posterior_flatness
+from ggfslam.ggf.features import AnchorGeometry, anchor_geometry
+from ggfslam.ggf.field import ResidualField, planar_prior, planar_probability
+
+
+def planarity_colors(p2d: torch.Tensor) -> torch.Tensor:
+    """Colours [N, 3] of planar probabilities [N]: red = 2D (P_2D = 1), blue = 3D (P_2D = 0)."""
+    p = p2d.clamp(0, 1)[:, None]
+    return p * torch.tensor([1.0, 0.0, 0.0]) + (1 - p) * torch.tensor([0.0, 0.0, 1.0])
+
+
+class GeometricGaussianField:
+    """Planar probability of every anchor of one ``AnchorMap`` (see the module docstring)."""
+
+    def __init__(self, cfg: GGFConfig, voxel_size: float, seed: int = 0):
+        self.cfg, self.voxel_size = cfg, float(voxel_size)
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            self.net = ResidualField(cfg.hidden)
+        self.opt = torch.optim.Adam(self.net.parameters(), lr=cfg.lr)
+        self.geom: AnchorGeometry | None = None
+        self.prior = torch.zeros(0)  # [A]
+        self._p2d: torch.Tensor | None = None
+        self._versions = (-1, -1, -1)  # (layout, geometry, observed) versions of the map last refreshed from
+        self._refreshed_at = -(10 ** 9)
+        self.updates = 0
+        self.regimes = np.zeros(3, np.int64)  # anchors trained in each AOF regime, cumulative
+        self.last_loss = 0.0
+
+    # --- geometry ------------------------------------------------------------------------------------
+    def refresh(self, amap, camera_centers: dict[int, np.ndarray], iteration: int = 0, force: bool = False) -> bool:
+        """Recompute the anchors' geometry and prior if the map changed (see the module docstring)."""
+        versions = (amap.layout_version, amap.geometry_version, amap.observed_version)
+        changed = self.geom is None or len(self.prior) != amap.n_anchors or versions[:2] != self._versions[:2]
+        observed = versions[2] != self._versions[2] and iteration - self._refreshed_at >= self.cfg.refresh_every
+        if not (changed or observed or force):
+            return False
+        c = self.cfg
+        cell = c.patch_cell * self.voxel_size if c.patch_cell > 0 else None
+        self.geom = anchor_geometry(amap, camera_centers, c.knn, c.tau, cell)
+        self._align = quat_z_to(self.geom.normals)  # [A, 4]
+        self.prior = planar_prior(self.geom.curvature, self.geom.color_var, self.geom.obs, c.tau, c.w1, c.w2, c.t0)
+        self._versions, self._refreshed_at, self._p2d = versions, iteration, None
+        return True
+
+    @torch.no_grad()
+    def p2d(self) -> torch.Tensor:
+        """P_2D [A] of every anchor (after ``refresh``)."""
+        if self._p2d is None:
+            self._p2d = planar_probability(self.prior, self.net(self.geom.features))
+        return self._p2d
+
+    def planar(self) -> torch.Tensor:
+        """[A] bool: anchors above the planar threshold."""
+        return self.p2d() > self.cfg.planar_threshold
+
+    # --- AMR -----------------------------------------------------------------------------------------
+    def shape(self, g: DecodedGaussians, amap) -> tuple[DecodedGaussians, torch.Tensor]:
+        """Children g of ``amap`` with AMR applied to those of planar anchors (unchanged when AMR is off),
+        and L_morph."""
+        zero = torch.zeros(())
+        if not self.cfg.amr or len(g) == 0:
+            return g, zero
+        a = g.anchor_index
+        planar = self.planar().index_select(0, a)  # [G]
+        if not bool(planar.any()):
+            return g, zero
+        geo, c = self.geom, self.cfg
+        n = geo.normals.index_select(0, a)  # [G, 3]
+        eps = c.surfel_eps * self.voxel_size
+        radius = c.surfel_radius * geo.spacing.index_select(0, a)
+        # all children at once and a select: cheaper than gathering and scattering the planar subset
+        q, s, m = surfel_shape(g.quats, g.scales, g.means, n, amap.surface.index_select(0, a), radius, eps,
+                               self._align.index_select(0, a))
+        pm = planar[:, None]
+        quats, scales, means = torch.where(pm, q, g.quats), torch.where(pm, s, g.scales), torch.where(pm, m, g.means)
+        idx = torch.nonzero(planar)[:, 0]
+        l_morph = morph_loss(g.quats[idx], g.scales[idx], n[idx], eps, self.voxel_size, c.lambda_dir, c.lambda_thin)
+        return DecodedGaussians(means, quats, scales, g.opacities, g.colors, g.anchor_index, g.child_index), l_morph
+
+    # --- AOF -----------------------------------------------------------------------------------------
+    def feedback(self, g: DecodedGaussians) -> float:
+        """One AOF step of the residual net from the optimized children g (their scales, detached)."""
+        p_post, count = posterior_flatness(g.scales, g.anchor_index, len(self.prior))
+        # anchors under AMR are left out: their children's thickness is eps by construction, so P_post = 1
+        # would be AMR confirming itself (with them in, every anchor of the synthetic room went planar,
+        # curved objects included, within 140 updates)
+        free = count > 0
+        if self.cfg.amr:
+            free &= ~self.planar()
+        sel = torch.nonzero(free)[:, 0]
+        if len(sel) == 0:
+            return 0.0
+        prior = self.prior[sel]
+        target, weight, regime = feedback_targets(p_post[sel], prior, self.cfg.margin, self.cfg.lambda_con)
+        p2d = planar_probability(prior, self.net(self.geom.features[sel]))
+        loss = feedback_loss(p2d, target, weight)
+        self.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        self.opt.step()
+        self._p2d = None
+        self.updates += 1
+        self.regimes += np.bincount(regime.numpy(), minlength=3)
+        self.last_loss = float(loss.item())
+        return self.last_loss
+
+    # --- reporting and checkpoint ------------------------------------------------------------------------
+    def stats(self) -> dict:
+        """Figures for metrics.json: planar fraction, mean P_2D and prior, AOF updates per regime."""
+        if self.geom is None or len(self.prior) == 0:
+            return {"anchors": 0, "aof_updates": self.updates}
+        p = self.p2d()
+        return {"anchors": int(len(p)), "planar_fraction": float((p > self.cfg.planar_threshold).float().mean()),
+                "p2d_mean": float(p.mean()), "prior_mean": float(self.prior.mean()), "aof_updates": self.updates,
+                "aof_evolution": int(self.regimes[EVOLUTION]), "aof_suppression": int(self.regimes[SUPPRESSION]),
+                "aof_consolidation": int(self.regimes[2]), "aof_last_loss": self.last_loss}
+
+    def state(self) -> dict:
+        """Net, optimizer, cached geometry and counters (a resumed run continues bit for bit)."""
+        return {"net": self.net.state_dict(), "opt": self.opt.state_dict(), "geom": self.geom, "prior": self.prior,
+                "versions": self._versions, "refreshed_at": self._refreshed_at, "updates": self.updates,
+                "regimes": self.regimes.copy(), "last_loss": self.last_loss}
+
+    def load_state(self, st: dict) -> None:
+        """Restore ``state()``."""
+        self.net.load_state_dict(st["net"])
+        self.opt.load_state_dict(st["opt"])
+        self.geom, self.prior = st["geom"], st["prior"]
+        self._align = quat_z_to(self.geom.normals) if self.geom is not None else None
+        self._versions, self._refreshed_at = tuple(st["versions"]), st["refreshed_at"]
+        self.updates, self.regimes, self.last_loss = st["updates"], np.asarray(st["regimes"]), st["last_loss"]
+        self._p2d = None
