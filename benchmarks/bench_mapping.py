@@ -60,21 +60,22 @@ def _run_one(raw: dict, out_dir: str) -> dict:
     }
 
 
-def throughput(width: int, target: int, spacing: int, steps: int = 60) -> dict:
+def throughput(width: int, target: int, spacing: int, steps: int = 60, overrides: list[str] | None = None) -> dict:
     """Mapper steps/s at ``width`` (4:3) on the procedural room with about ``target`` decoded Gaussians, from
     keyframes ``spacing`` frames apart (10: each sees nearly all of the map; at 70 two keyframes a quarter-lap apart
     already hold ~100k)."""
-    from ggfslam.config import config_from_dict
+    from ggfslam.config import apply_overrides, config_from_dict
     from ggfslam.data.sources import open_dataset_from_config
     from ggfslam.mapping.mapper import Mapper
     from ggfslam.render.types import RenderSettings
 
     height = width * 3 // 4
-    cfg = config_from_dict({"dataset": {"kind": "synthetic", "synthetic": {
-        "n_frames": 980, "width": width, "height": height}}, "mapping": {"train_width": width}})
+    cfg = config_from_dict(apply_overrides({"dataset": {"kind": "synthetic", "synthetic": {
+        "n_frames": 980, "width": width, "height": height}}, "mapping": {"train_width": width}}, list(overrides or [])))
     ds = open_dataset_from_config(cfg.dataset)
     poses: dict = {}
-    m = Mapper(cfg.mapping, ds.camera, RenderSettings(backend="cpu"), lambda: dict(poses), tempfile.mkdtemp())
+    m = Mapper(cfg.mapping, ds.camera, RenderSettings(backend="cpu"), lambda: dict(poses), tempfile.mkdtemp(),
+               ggf=cfg.ggf)
     kf = 0
     for fi in range(0, len(ds), spacing):
         poses[kf] = ds.gt_poses[fi]
@@ -137,7 +138,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.throughput:
         log(f"throughput at {args.throughput_width} px, ~{args.throughput_gaussians} Gaussians")
         report["throughput"] = in_fresh_process(throughput, args.throughput_width, args.throughput_gaussians,
-                                                  args.throughput_spacing)
+                                                  args.throughput_spacing, 60, args.overrides)
         log(f"  {report['throughput']['iterations_per_s']:.1f} it/s")
     return finish_report(report, stdout, scratch, bool(args.keep), failed)
 

@@ -22,6 +22,7 @@ ROWS = [
     ("rendering", "ssim", "SSIM", "{:.3f}"),
     ("rendering", "lpips", "LPIPS", "{}"),
     ("rendering", "depth_l1_cm", "Depth L1 [cm]", "{:.2f}"),
+    ("rendering", "normal_error_deg", "normal error [deg]", "{:.1f}"),
     ("rendering", "frames", "frames rendered", "{:d}"),
     ("rendering", "width", "render width [px]", "{:d}"),
     ("rendering", "render_fps", "rendering [frames/s]", "{:.1f}"),

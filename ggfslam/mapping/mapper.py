@@ -273,7 +273,7 @@ class Mapper:
                 self.pruned += self.density.prune(self.opt)
             self.train_seconds += time.perf_counter() - t0
             self.last_losses = {"loss": loss.item(), "photo": l_photo.item(), "depth": l_depth.item(),
-                                "normal": l_normal.item(), "morph": float(l_morph)}
+                                "normal": l_normal.item(), "morph": float(l_morph.detach())}
             return self.last_losses
 
     def _expose(self, color: torch.Tensor, kf_id: int | None) -> torch.Tensor:
