@@ -22,6 +22,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+import numpy as np
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_mapping import _run_one  # noqa: E402
 from bench_tracking import finish_report, in_fresh_process, log, prepared_sequences, start_report  # noqa: E402
@@ -46,15 +48,28 @@ def _run_variant(raw: dict, out_dir: str) -> dict:
     if mapper.ggf is not None and cfg.dataset.kind == "synthetic" and cfg.dataset.synthetic.source == "procedural":
         from ggfslam.data.synthetic import make_scene
         from ggfslam.eval.planarity import planar_fractions
+        from ggfslam.geometry.depth import transform_points
 
         syn = cfg.dataset.synthetic
         scene = make_scene(syn.seed, syn.textureless_wall)
         pl = mapper.planarity()
-        row["planarity"] = planar_fractions(pl["surface"].numpy(), pl["p2d"].numpy(), scene.mesh,
-                                            scene.triangle_planar, cfg.ggf.planar_threshold)
-        row["planarity_prior"] = planar_fractions(pl["surface"].numpy(), pl["prior"].numpy(), scene.mesh,
-                                                  scene.triangle_planar, cfg.ggf.planar_threshold)
+        # the map lives in the estimate's world frame: move its points onto the ground truth's (ATE alignment)
+        pts = transform_points(_alignment(cfg, Path(out_dir)), pl["surface"].numpy().astype(np.float64))
+        for key, name in (("p2d", "planarity"), ("prior", "planarity_prior")):
+            row[name] = planar_fractions(pts, pl[key].numpy(), scene.mesh, scene.triangle_planar,
+                                         cfg.ggf.planar_threshold)
     return row
+
+
+def _alignment(cfg, run_dir: Path) -> np.ndarray:
+    """SE(3) [4, 4] from the run's world frame to the ground truth's (the ATE alignment)."""
+    from ggfslam.data.trajectory_io import read_tum_trajectory
+    from ggfslam.eval.mesh_geometry import ground_truth_alignment
+    from ggfslam.rundir import GROUNDTRUTH_FILE, TRAJECTORY_FILE
+
+    est = read_tum_trajectory(run_dir / TRAJECTORY_FILE)
+    gt = read_tum_trajectory(run_dir / GROUNDTRUTH_FILE)
+    return ground_truth_alignment(est[0], est[1], gt[0], gt[1], cfg.eval.max_time_diff)[0]
 
 
 def _mesh_figures(cfg, mapper, run_dir: Path) -> dict:

@@ -18,6 +18,15 @@ from ggfslam.eval.trajectory import ATE
 from ggfslam.geometry.depth import normals_from_depth
 
 
+def ground_truth_alignment(est_stamps: np.ndarray, est_poses: np.ndarray, gt_stamps: np.ndarray,
+                           gt_poses: np.ndarray, max_diff: float = 0.02) -> tuple[np.ndarray, float]:
+    """The ATE's SE(3) alignment [4, 4] taking the estimate's world frame onto the ground truth's, and the
+    ATE RMSE (cm) after it."""
+    ate = ATE(max_diff)
+    ate.process_data((est_stamps, est_poses, gt_stamps, gt_poses))
+    return ate.alignment, 100 * ate.get_statistic("rmse")
+
+
 def mesh_geometry_metrics(mapper, mesh: o3d.geometry.TriangleMesh | str | Path, est_stamps: np.ndarray,
                           est_poses: np.ndarray, gt_stamps: np.ndarray, gt_poses: np.ndarray, intr,
                           stride: int = 5, max_diff: float = 0.02) -> dict:
@@ -29,9 +38,7 @@ def mesh_geometry_metrics(mapper, mesh: o3d.geometry.TriangleMesh | str | Path, 
         mesh = o3d.io.read_triangle_mesh(str(mesh))
         if len(mesh.triangles) == 0:
             raise ValueError(f"{mesh}: no triangles")
-    ate = ATE(max_diff)
-    ate.process_data((est_stamps, est_poses, gt_stamps, gt_poses))
-    A = ate.alignment
+    A, ate_cm = ground_truth_alignment(est_stamps, est_poses, gt_stamps, gt_poses, max_diff)
     caster = MeshRaycaster(mesh)
     cam = Camera(fx=intr.fx, fy=intr.fy, cx=intr.cx, cy=intr.cy, width=intr.width, height=intr.height)
     depth_l1, normal_err = [], []
@@ -42,4 +49,4 @@ def mesh_geometry_metrics(mapper, mesh: o3d.geometry.TriangleMesh | str | Path, 
         ref_n = normals_from_depth(ref, intr.fx, intr.fy, intr.cx, intr.cy)
         normal_err.append(normal_error_deg(out.normals.numpy(), ref_n))
     return {"mesh_depth_l1_cm": float(np.nanmean(depth_l1)), "mesh_normal_error_deg": float(np.nanmean(normal_err)),
-            "mesh_frames": len(depth_l1), "ate_rmse_cm": 100 * ate.get_statistic("rmse")}
+            "mesh_frames": len(depth_l1), "ate_rmse_cm": ate_cm}

@@ -35,19 +35,63 @@ def quat_z_to(n: torch.Tensor) -> torch.Tensor:
     return q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 
+def _inplane(quats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The decoder quaternion's rotation about local z: unit (w, z) [N, 2] and the norm [N] it was divided by."""
+    wz = quats[:, [0, 3]]
+    norm = wz.norm(dim=1)
+    c = torch.where((norm > 1e-8)[:, None], wz / norm.clamp_min(1e-8)[:, None], torch.tensor([1.0, 0.0], dtype=wz.dtype))
+    return c, norm
+
+
+class _SurfelShape(torch.autograd.Function):
+    """``surfel_shape`` on the children selected by a mask, others passed through; a hand-written backward
+    (a dozen tensor ops instead of autograd's graph of ~40: about 4x faster at 150k children)."""
+
+    @staticmethod
+    def forward(ctx, quats, scales, means, mask, normals, surface, min_radius, eps, align):
+        c, norm = _inplane(quats)  # [N, 2]
+        qk = quat_multiply(align, torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=align.dtype).expand_as(align))
+        q = c[:, :1] * align + c[:, 1:] * qk  # align * (c0 + c1 k)
+        tang = scales[:, :2] >= min_radius[:, None]  # [N, 2] tangential scale above the floor
+        s = torch.cat([torch.where(tang, scales[:, :2], min_radius[:, None]), torch.full_like(scales[:, :1], eps)], 1)
+        m = means - ((means - surface) * normals).sum(-1, keepdim=True) * normals
+        mk = mask[:, None]
+        ctx.save_for_backward(mask, normals, align, qk, c, norm, tang)
+        return torch.where(mk, q, quats), torch.where(mk, s, scales), torch.where(mk, m, means)
+
+    @staticmethod
+    def backward(ctx, g_q, g_s, g_m):
+        mask, normals, align, qk, c, norm, tang = ctx.saved_tensors
+        mk = mask[:, None]
+        # q = c0 align + c1 qk with c = (w, z) / |(w, z)|
+        g_c = torch.stack([(g_q * align).sum(-1), (g_q * qk).sum(-1)], 1)  # [N, 2]
+        g_wz = (g_c - (g_c * c).sum(-1, keepdim=True) * c) / norm.clamp_min(1e-8)[:, None]
+        g_quat = torch.zeros_like(g_q)
+        g_quat[:, 0], g_quat[:, 3] = g_wz[:, 0], g_wz[:, 1]
+        g_scale = torch.cat([g_s[:, :2] * tang, torch.zeros_like(g_s[:, :1])], 1)
+        g_mean = g_m - (g_m * normals).sum(-1, keepdim=True) * normals  # (I - n n^T) g
+        return (torch.where(mk, g_quat, g_q), torch.where(mk, g_scale, g_s), torch.where(mk, g_mean, g_m),
+                None, None, None, None, None, None)
+
+
 def surfel_shape(quats: torch.Tensor, scales: torch.Tensor, means: torch.Tensor, normals: torch.Tensor,
-                 surface: torch.Tensor, min_radius: torch.Tensor, eps: float, align: torch.Tensor | None = None
-                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                 surface: torch.Tensor, min_radius: torch.Tensor, eps: float, align: torch.Tensor | None = None,
+                 mask: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """AMR applied to children [N]: quats [N, 4], scales [N, 3], means [N, 3] of the decoder, their anchor's
     normal [N, 3], surface point [N, 3] and smallest tangential radius [N] -> surfel (quats, scales, means).
-    ``align`` [N, 4]: ``quat_z_to(normals)`` when the caller has it already."""
-    inplane = torch.stack([quats[:, 0], torch.zeros_like(quats[:, 0]), torch.zeros_like(quats[:, 0]), quats[:, 3]], -1)
-    norm = inplane.norm(dim=-1, keepdim=True)
-    identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=quats.dtype).expand_as(inplane)
-    inplane = torch.where(norm > 1e-8, inplane / norm.clamp_min(1e-8), identity)
-    q = quat_multiply(quat_z_to(normals) if align is None else align, inplane)
-    s = torch.cat([torch.maximum(scales[:, :2], min_radius[:, None]),
-                   torch.full_like(scales[:, 2:], eps)], dim=1)
+    ``align`` [N, 4]: ``quat_z_to(normals)`` when the caller has it already; ``mask`` [N] bool: shape only
+    those children and pass the others through (default: all). Differentiable in quats, scales and means."""
+    align = quat_z_to(normals) if align is None else align
+    mask = torch.ones(len(quats), dtype=torch.bool) if mask is None else mask
+    return _SurfelShape.apply(quats, scales, means, mask, normals, surface, min_radius, float(eps), align)
+
+
+def surfel_shape_reference(quats, scales, means, normals, surface, min_radius, eps):
+    """``surfel_shape`` in plain autograd ops (the parity reference of the hand-written backward)."""
+    c, _ = _inplane(quats)
+    inplane = torch.stack([c[:, 0], torch.zeros_like(c[:, 0]), torch.zeros_like(c[:, 0]), c[:, 1]], -1)
+    q = quat_multiply(quat_z_to(normals), inplane)
+    s = torch.cat([torch.maximum(scales[:, :2], min_radius[:, None]), torch.full_like(scales[:, 2:], eps)], dim=1)
     m = means - ((means - surface) * normals).sum(-1, keepdim=True) * normals
     return q, s, m
 

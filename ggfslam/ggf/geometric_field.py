@@ -28,6 +28,9 @@ def planarity_colors(p2d: torch.Tensor) -> torch.Tensor:
     return p * torch.tensor([1.0, 0.0, 0.0]) + (1 - p) * torch.tensor([0.0, 0.0, 1.0])
 
 
+MORPH_SAMPLES = 8192  # planar children L_morph is evaluated on per step
+
+
 class GeometricGaussianField:
     """Planar probability of every anchor of one ``AnchorMap`` (see the module docstring)."""
 
@@ -89,11 +92,11 @@ class GeometricGaussianField:
         eps = c.surfel_eps * self.voxel_size
         radius = c.surfel_radius * geo.spacing.index_select(0, a)
         # all children at once and a select: cheaper than gathering and scattering the planar subset
-        q, s, m = surfel_shape(g.quats, g.scales, g.means, n, amap.surface.index_select(0, a), radius, eps,
-                               self._align.index_select(0, a))
-        pm = planar[:, None]
-        quats, scales, means = torch.where(pm, q, g.quats), torch.where(pm, s, g.scales), torch.where(pm, m, g.means)
+        quats, scales, means = surfel_shape(g.quats, g.scales, g.means, n, amap.surface.index_select(0, a), radius,
+                                            eps, self._align.index_select(0, a), planar)
         idx = torch.nonzero(planar)[:, 0]
+        if len(idx) > MORPH_SAMPLES:  # an evenly spaced sample: the loss trains the shared decoder, not each child
+            idx = idx[:: -(-len(idx) // MORPH_SAMPLES)]
         l_morph = morph_loss(g.quats[idx], g.scales[idx], n[idx], eps, self.voxel_size, c.lambda_dir, c.lambda_thin)
         return DecodedGaussians(means, quats, scales, g.opacities, g.colors, g.anchor_index, g.child_index), l_morph
 

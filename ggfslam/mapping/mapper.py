@@ -10,10 +10,10 @@
 - Loss (METHOD.md §5): ``0.8 L1 + 0.2 (1 - SSIM) + 0.5 L_depth + 0.05 L_normal`` plus Scaffold-GS's volume
   regulariser, plus ``0.1 L_morph`` with the Geometric-Gaussian Field; growing and pruning every
   ``densify_every`` steps.
-- With ``ggf.enabled`` (ggf/), every keyframe's depth is recorded per anchor voxel (``AnchorMap.observe``),
-  each step renders P_2D as the planar-weight channel (``RenderOutput.extras[..., 0]``), AMR turns the
-  children of planar anchors into surfels (training, rendering and export alike) and AOF trains the field's
-  residual net after the Gaussians' step.
+- With ``ggf.enabled`` (ggf/), every keyframe's depth and view are recorded per anchor (``_observe``), AMR
+  turns the children of planar anchors into surfels (training, rendering and export alike), AOF trains the
+  field's residual net after the Gaussians' step, and ``render`` carries P_2D as the planar-weight channel
+  (``RenderOutput.extras[..., 0]``).
 Every public method takes ``self.lock``, so a worker thread can train while another thread renders or saves.
 """
 from __future__ import annotations
@@ -98,8 +98,16 @@ class Mapper:
             if T_wc is None:
                 T_wc = self.pose_source()[kf_id]
             pts, cols = self._seed_points(item.rgb, item.depth, T_wc, landmarks)
+            first_new = self.map.n_anchors
             added = self._append_anchors(pts, cols, kf_id)
             self._observe(item.rgb, item.depth, T_wc)
+            if added:
+                # the new anchors were also in view of the latest keyframes: count those views too, so an
+                # anchor's T does not depend on whether it was created early or late in the sequence
+                new = np.arange(first_new, self.map.n_anchors)
+                for k in sorted(self.anchor_poses)[-self.cfg.window:]:
+                    prev = self.store.get(k)
+                    self._observe(prev.rgb, prev.depth, self._poses.get(k, self.anchor_poses[k]), new)
             self.anchor_poses[kf_id] = T_wc.copy()
             if kf_id not in self.exposure_row:
                 self._add_exposure(kf_id)
@@ -122,18 +130,20 @@ class Mapper:
             cols = np.concatenate([cols, rgb[v[inside], u[inside]]])
         return pts, cols
 
-    def _observe(self, rgb: np.ndarray, depth: np.ndarray, T_wc: np.ndarray) -> None:
+    def _observe(self, rgb: np.ndarray, depth: np.ndarray, T_wc: np.ndarray, anchors: np.ndarray | None = None) -> None:
         """What a keyframe tells the anchors (AnchorMap's module docstring): its depth pixels (training
         resolution) sharpen the voxels' surface points; the anchors it sees count one observation and record
-        the colour there."""
+        the colour there. With ``anchors`` [M] only those are looked at and the surface points stay."""
         i = self.intr
         valid = depth > 0
         # edge-preserving smoothing: sensor noise (~1-2 cm at 3 m) would otherwise spread a wall's points over
         # several voxel layers and make it look curved
         smooth = cv2.bilateralFilter(depth.astype(np.float32), 7, 0.05, 2.0)
         smooth = np.where(valid & (np.abs(smooth - depth) < 0.1), smooth, depth)
-        self.map.add_surface_points(transform_points(T_wc, backproject(smooth, i.fx, i.fy, i.cx, i.cy)[valid]))
-        pc = transform_points(invert(T_wc), self.map.surface.numpy().astype(np.float64))  # [A, 3] camera
+        if anchors is None:
+            self.map.add_surface_points(transform_points(T_wc, backproject(smooth, i.fx, i.fy, i.cx, i.cy)[valid]))
+            anchors = np.arange(self.map.n_anchors)
+        pc = transform_points(invert(T_wc), self.map.surface.numpy()[anchors].astype(np.float64))  # [M, 3] camera
         z = pc[:, 2]
         front = np.nonzero(z > self.settings.near_plane)[0]
         u = np.rint(i.fx * pc[front, 0] / z[front] + i.cx).astype(np.int64)
@@ -144,7 +154,7 @@ class Mapper:
         # seen: on the keyframe's depth surface, not behind it (occluded) nor in front of it (free space)
         seen = (d > 0) & (np.abs(z[front] - d) < np.maximum(2 * self.cfg.voxel_size, 0.03 * d))
         blurred = cv2.blur(rgb, (3, 3))
-        self.map.add_observation(front[seen], blurred[v[seen], u[seen]])
+        self.map.add_observation(anchors[front[seen]], blurred[v[seen], u[seen]])
 
     def _append_anchors(self, pts: np.ndarray, cols: np.ndarray, source_kf: int) -> int:
         n_free = self.cfg.max_anchors - self.map.n_anchors
@@ -243,9 +253,9 @@ class Mapper:
             g, mask = self._decode(T_wc, self.intr)
             if len(g) == 0:
                 return {}
-            g, l_morph, p2d = self._field(g)
+            g, l_morph, _ = self._field(g)  # the planar-weight channel is for renders, not for training
             out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, self.intr,
-                            torch.from_numpy(invert(T_wc)).float(), extras=p2d, settings=self.settings)
+                            torch.from_numpy(invert(T_wc)).float(), settings=self.settings)
             color = self._expose(out.color, kf_id)
             gt_rgb = torch.from_numpy(item.rgb)
             gt_depth = torch.from_numpy(item.depth)
