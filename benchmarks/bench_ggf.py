@@ -5,7 +5,7 @@ Sequences as in ``bench_mapping.py`` (``synthetic:N``, ``replica:N``, dataset fo
 variant is a whole ``ggfslam.slam.run`` in a fresh process. Reported per run: PSNR, SSIM, depth L1 (cm) and
 normal error (degrees) against the input depth, and ``mesh_depth_l1_cm`` / ``mesh_normal_error_deg``
 against the ground-truth mesh of generated sequences (``ggfslam.eval.mesh_geometry``: every 5th frame, the
-mesh ray cast at the ATE-aligned estimated pose), ATE, mapping iterations/s and the mapping time per
+mesh ray cast at the ATE-aligned estimated pose, over the pixels where the input had depth), ATE, mapping iterations/s and the mapping time per
 iteration relative to the run with the field off (meaningful only when nothing else loads the machine). On synthetic
 sequences (ground-truth mesh with planar/curved labels): the fraction of anchors with P_2D > threshold
 among anchors within 5 cm of a planar face and of a curved object (``ggfslam.eval.planarity``).
@@ -26,7 +26,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_mapping import _run_one  # noqa: E402
-from bench_tracking import finish_report, in_fresh_process, log, prepared_sequences, start_report  # noqa: E402
+from bench_tracking import finish_report, guarded_run, log, prepared_sequences, start_report  # noqa: E402
 
 VARIANTS = {
     "off": {"enabled": False},
@@ -53,7 +53,7 @@ def _run_variant(raw: dict, out_dir: str) -> dict:
         syn = cfg.dataset.synthetic
         scene = make_scene(syn.seed, syn.textureless_wall)
         pl = mapper.planarity()
-        # the map lives in the estimate's world frame: move its points onto the ground truth's (ATE alignment)
+        # the map lives in the estimate's world frame: move its points onto the ground truth's
         pts = transform_points(_alignment(cfg, Path(out_dir)), pl["surface"].numpy().astype(np.float64))
         for key, name in (("p2d", "planarity"), ("prior", "planarity_prior")):
             row[name] = planar_fractions(pts, pl[key].numpy(), scene.mesh, scene.triangle_planar,
@@ -62,7 +62,7 @@ def _run_variant(raw: dict, out_dir: str) -> dict:
 
 
 def _alignment(cfg, run_dir: Path) -> np.ndarray:
-    """SE(3) [4, 4] from the run's world frame to the ground truth's (the ATE alignment)."""
+    """SE(3) [4, 4] from the run's world frame to the ground truth's (fitted to all poses)."""
     from ggfslam.data.trajectory_io import read_tum_trajectory
     from ggfslam.eval.mesh_geometry import ground_truth_alignment
     from ggfslam.rundir import GROUNDTRUTH_FILE, TRAJECTORY_FILE
@@ -80,13 +80,14 @@ def _mesh_figures(cfg, mapper, run_dir: Path) -> dict:
     from ggfslam.eval.mesh_geometry import mesh_geometry_metrics
     from ggfslam.rundir import GROUNDTRUTH_FILE, TRAJECTORY_FILE
 
-    root = getattr(sources.open_dataset_from_config(cfg.dataset), "root", None)
+    dataset = sources.open_dataset_from_config(cfg.dataset)
+    root = getattr(dataset, "root", None)
     if root is None or not (Path(root) / "mesh.ply").is_file() or not (run_dir / GROUNDTRUTH_FILE).is_file():
         return {}
     est = read_tum_trajectory(run_dir / TRAJECTORY_FILE)
     gt = read_tum_trajectory(run_dir / GROUNDTRUTH_FILE)
     return mesh_geometry_metrics(mapper, Path(root) / "mesh.ply", est[0], est[1], gt[0], gt[1], mapper.intr,
-                                 stride=5, max_diff=cfg.eval.max_time_diff)
+                                 stride=5, max_diff=cfg.eval.max_time_diff, dataset=dataset)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -114,12 +115,8 @@ def main(argv: list[str] | None = None) -> int:
             out = scratch / f"{str(raw.get('name', 'run')).replace('/', '_')}-{v}"
             log(f"{spec} [{v}] -> {out}")
             row = {"sequence": spec, "variant": v}
-            try:
-                row.update(in_fresh_process(_run_variant, run_raw, str(out)))
-            except Exception as e:  # one failed run must not lose the others' figures
-                log(f"{spec} [{v}] failed: {type(e).__name__}: {e}")
-                row["error"] = f"{type(e).__name__}: {e}"
-                failed = True
+            row.update(guarded_run(f"{spec} [{v}]", _run_variant, run_raw, str(out)))
+            failed |= "error" in row
             if "error" not in row:
                 rate = row["mapping_iterations_per_s"]
                 base_rate = rate if v == "off" else base_rate

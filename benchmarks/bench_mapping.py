@@ -31,7 +31,8 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_tracking import finish_report, in_fresh_process, log, prepared_sequences, start_report  # noqa: E402
+from bench_tracking import (finish_report, guarded_run, in_fresh_process, log, prepared_sequences,  # noqa: E402
+                            start_report)
 
 
 def _run_one(raw: dict, out_dir: str) -> dict:
@@ -125,12 +126,8 @@ def main(argv: list[str] | None = None) -> int:
         out = scratch / str(raw.get("name", "run")).replace("/", "_")
         log(f"{spec} -> {out}")
         row = {"sequence": spec, "name": raw.get("name", "run")}
-        try:
-            row.update(in_fresh_process(_run_one, raw, str(out)))
-        except Exception as e:  # one failed run must not lose the others' figures
-            log(f"{spec} failed: {type(e).__name__}: {e}")
-            row["error"] = f"{type(e).__name__}: {e}"
-            failed = True
+        row.update(guarded_run(spec, _run_one, raw, str(out)))
+        failed |= "error" in row
         if "error" not in row:
             log(f"  PSNR {row['psnr']:.2f} dB, depth L1 {row['depth_l1_cm']:.2f} cm, "
                 f"{row['mapping_iterations_per_s']:.1f} it/s, run {row['run_seconds']:.0f} s")

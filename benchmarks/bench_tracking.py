@@ -143,6 +143,16 @@ def in_fresh_process(fn, *args):
         return pool.submit(fn, *args).result()
 
 
+def guarded_run(label: str, fn, *args) -> dict:
+    """``fn(*args)`` in a fresh process; a failure is logged and returned as ``{"error": ...}`` so that one
+    failed run does not lose the others' figures."""
+    try:
+        return in_fresh_process(fn, *args)
+    except Exception as e:
+        log(f"{label} failed: {type(e).__name__}: {e}")
+        return {"error": f"{type(e).__name__}: {e}"}
+
+
 def finish_report(report: dict, stdout, scratch: Path, keep: bool, failed: bool) -> int:
     """Drop the scratch runs unless kept, write the JSON report; returns the exit status."""
     if not keep:

@@ -159,3 +159,17 @@ def make_folder(tmp_path):
         return root
 
     return build
+
+
+@pytest.fixture(scope="module")
+def sequence(tmp_path_factory):
+    """The procedural room, 30 frames at 320x240 (generated into a per-module cache)."""
+    from ggfslam.config import config_from_dict
+    from ggfslam.data import sources
+
+    mp = pytest.MonkeyPatch()
+    mp.setenv("GGFSLAM_CACHE", str(tmp_path_factory.mktemp("cache")))
+    cfg = config_from_dict({"dataset": {"kind": "synthetic", "synthetic": {"n_frames": 30, "width": 320,
+                                                                          "height": 240}}}, "test")
+    yield sources.open_dataset_from_config(cfg.dataset)
+    mp.undo()

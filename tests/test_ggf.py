@@ -260,18 +260,6 @@ def test_render_loss_does_not_reach_the_field():
 
 
 # --- in the mapper -----------------------------------------------------------------------------------
-@pytest.fixture(scope="module")
-def sequence(tmp_path_factory):
-    mp = pytest.MonkeyPatch()
-    mp.setenv("GGFSLAM_CACHE", str(tmp_path_factory.mktemp("cache")))
-    cfg = config_from_dict({"dataset": {"kind": "synthetic", "synthetic": {"n_frames": 30, "width": 320,
-                                                                          "height": 240}}}, "test")
-    from ggfslam.data import sources
-
-    yield sources.open_dataset_from_config(cfg.dataset)
-    mp.undo()
-
-
 def _mapper(ds, poses, store=None, **ggf):
     from ggfslam.mapping.mapper import Mapper
 

@@ -20,17 +20,6 @@ from ggfslam.mapping.worker import MappingWorker
 from ggfslam.render.types import RenderSettings
 
 
-@pytest.fixture(scope="module")
-def sequence(tmp_path_factory):
-    mp = pytest.MonkeyPatch()
-    mp.setenv("GGFSLAM_CACHE", str(tmp_path_factory.mktemp("cache")))
-    cfg = config_from_dict({"dataset": {"kind": "synthetic", "synthetic": {"n_frames": 30, "width": 320,
-                                                                          "height": 240}}}, "test")
-    ds = sources.open_dataset_from_config(cfg.dataset)
-    yield ds
-    mp.undo()
-
-
 def _mapper(ds, poses, **kw):
     cfg = MappingConfig(train_width=160, **kw)
     return Mapper(cfg, ds.camera, RenderSettings(backend="cpu"), lambda: dict(poses), tempfile.mkdtemp())

@@ -48,14 +48,15 @@ class _SurfelShape(torch.autograd.Function):
     (a dozen tensor ops instead of autograd's graph of ~40: about 4x faster at 150k children)."""
 
     @staticmethod
-    def forward(ctx, quats, scales, means, mask, normals, surface, min_radius, eps, align):
+    def forward(ctx, quats, scales, means, mask, normals, surface, min_radius, eps, align, snap):
         c, norm = _inplane(quats)  # [N, 2]
         qk = quat_multiply(align, torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=align.dtype).expand_as(align))
         q = c[:, :1] * align + c[:, 1:] * qk  # align * (c0 + c1 k)
         tang = scales[:, :2] >= min_radius[:, None]  # [N, 2] tangential scale above the floor
         s = torch.cat([torch.where(tang, scales[:, :2], min_radius[:, None]), torch.full_like(scales[:, :1], eps)], 1)
-        m = means - ((means - surface) * normals).sum(-1, keepdim=True) * normals
+        m = means - ((means - surface) * normals).sum(-1, keepdim=True) * normals if snap else means
         mk = mask[:, None]
+        ctx.snap = snap
         ctx.save_for_backward(mask, normals, align, qk, c, norm, tang)
         return torch.where(mk, q, quats), torch.where(mk, s, scales), torch.where(mk, m, means)
 
@@ -69,21 +70,22 @@ class _SurfelShape(torch.autograd.Function):
         g_quat = torch.zeros_like(g_q)
         g_quat[:, 0], g_quat[:, 3] = g_wz[:, 0], g_wz[:, 1]
         g_scale = torch.cat([g_s[:, :2] * tang, torch.zeros_like(g_s[:, :1])], 1)
-        g_mean = g_m - (g_m * normals).sum(-1, keepdim=True) * normals  # (I - n n^T) g
+        g_mean = g_m - (g_m * normals).sum(-1, keepdim=True) * normals if ctx.snap else g_m  # (I - n n^T) g
         return (torch.where(mk, g_quat, g_q), torch.where(mk, g_scale, g_s), torch.where(mk, g_mean, g_m),
-                None, None, None, None, None, None)
+                None, None, None, None, None, None, None)
 
 
 def surfel_shape(quats: torch.Tensor, scales: torch.Tensor, means: torch.Tensor, normals: torch.Tensor,
                  surface: torch.Tensor, min_radius: torch.Tensor, eps: float, align: torch.Tensor | None = None,
-                 mask: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                 mask: torch.Tensor | None = None, snap: bool = True) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """AMR applied to children [N]: quats [N, 4], scales [N, 3], means [N, 3] of the decoder, their anchor's
     normal [N, 3], surface point [N, 3] and smallest tangential radius [N] -> surfel (quats, scales, means).
     ``align`` [N, 4]: ``quat_z_to(normals)`` when the caller has it already; ``mask`` [N] bool: shape only
-    those children and pass the others through (default: all). Differentiable in quats, scales and means."""
+    those children and pass the others through (default: all); ``snap=False`` leaves the means where the
+    decoder put them. Differentiable in quats, scales and means."""
     align = quat_z_to(normals) if align is None else align
     mask = torch.ones(len(quats), dtype=torch.bool) if mask is None else mask
-    return _SurfelShape.apply(quats, scales, means, mask, normals, surface, min_radius, float(eps), align)
+    return _SurfelShape.apply(quats, scales, means, mask, normals, surface, min_radius, float(eps), align, bool(snap))
 
 
 def surfel_shape_reference(quats, scales, means, normals, surface, min_radius, eps):

@@ -42,6 +42,7 @@ class GeometricGaussianField:
         self.opt = torch.optim.Adam(self.net.parameters(), lr=cfg.lr)
         self.geom: AnchorGeometry | None = None
         self.prior = torch.zeros(0)  # [A]
+        self._align: torch.Tensor | None = None  # [A, 4] rotation taking z onto each anchor's normal
         self._p2d: torch.Tensor | None = None
         self._versions = (-1, -1, -1)  # (layout, geometry, observed) versions of the map last refreshed from
         self._refreshed_at = -(10 ** 9)
@@ -93,7 +94,7 @@ class GeometricGaussianField:
         radius = c.surfel_radius * geo.spacing.index_select(0, a)
         # all children at once and a select: cheaper than gathering and scattering the planar subset
         quats, scales, means = surfel_shape(g.quats, g.scales, g.means, n, amap.surface.index_select(0, a), radius,
-                                            eps, self._align.index_select(0, a), planar)
+                                            eps, self._align.index_select(0, a), planar, c.snap)
         idx = torch.nonzero(planar)[:, 0]
         if len(idx) > MORPH_SAMPLES:  # an evenly spaced sample: the loss trains the shared decoder, not each child
             idx = idx[:: -(-len(idx) // MORPH_SAMPLES)]
