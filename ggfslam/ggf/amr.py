@@ -6,7 +6,8 @@ For a child of an anchor with ``P_2D > tau_thresh`` (normal ``n``, surface point
 - scales ``(max(s_x, r), max(s_y, r), eps)``: the local z axis, now the normal, is the shortest with
   thickness ``eps`` (``surfel_eps`` x voxel); tangential radii are at least ``r = surfel_radius * d`` so
   neighbouring surfels overlap and leave no holes;
-- mean moved along ``n`` onto the anchor's plane through ``p`` (the decoder keeps the in-plane position).
+- with ``ggf.snap``, the mean moved along ``n`` onto the anchor's plane through ``p`` (the decoder keeps the
+  in-plane position); off by default, see the config field.
 This is a hard projection of what the decoder outputs, so the render always sees surfels. ``L_morph``
 (``morph_loss``) acts on the decoder's raw output: it pulls the raw shortest axis onto ``n`` and the raw
 thickness to ``eps``, so children keep their surfel shape if their anchor later drops below the threshold.
