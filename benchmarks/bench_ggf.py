@@ -26,7 +26,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_mapping import _run_one  # noqa: E402
-from bench_tracking import finish_report, guarded_run, log, prepared_sequences, start_report  # noqa: E402
+from bench_tracking import (comma_choices, finish_report, guarded_run, log, prepared_sequences,  # noqa: E402
+                            start_report)
 
 VARIANTS = {
     "off": {"enabled": False},
@@ -100,10 +101,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="config override applied to every run (repeatable)")
     ap.add_argument("--keep", metavar="DIR", help="keep the run directories under DIR (default: discarded)")
     args = ap.parse_args(argv)
-    variants = [v.strip() for v in args.variants.split(",") if v.strip()]
-    unknown = [v for v in variants if v not in VARIANTS]
-    if unknown:
-        ap.error(f"unknown variants {unknown}; choose from {list(VARIANTS)}")
+    variants = comma_choices(ap, args.variants, VARIANTS, "variant")
 
     report, stdout = start_report("ggf", args.overrides, variants=variants)
     scratch = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="bench_ggf-"))

@@ -143,6 +143,15 @@ def in_fresh_process(fn, *args):
         return pool.submit(fn, *args).result()
 
 
+def comma_choices(ap, text: str, allowed, what: str) -> list[str]:
+    """The comma-separated names in ``text``; an unknown one ends the program with argparse's usage error."""
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    bad = [n for n in names if n not in allowed]
+    if bad:
+        ap.error(f"unknown {what}(s) {', '.join(bad)}; choose from {', '.join(allowed)}")
+    return names
+
+
 def guarded_run(label: str, fn, *args) -> dict:
     """``fn(*args)`` in a fresh process; a failure is logged and returned as ``{"error": ...}`` so that one
     failed run does not lose the others' figures."""
@@ -178,10 +187,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--in-process", action="store_true",
                     help="run everything in this process (faster start; peak RSS is then cumulative)")
     args = ap.parse_args(argv)
-    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-    bad = [m for m in methods if m not in METHODS]
-    if bad:
-        ap.error(f"unknown method(s) {', '.join(bad)}; choose from {', '.join(METHODS)}")
+    methods = comma_choices(ap, args.methods, METHODS, "method")
 
     report, stdout = start_report("tracking", args.overrides, methods=methods)
     scratch = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="bench_tracking-"))
