@@ -16,9 +16,9 @@ import open3d as o3d
 
 from ggfslam.data.types import Camera
 from ggfslam.eval.image import depth_l1_cm, normal_error_deg
-from ggfslam.eval.trajectory import ATE
+from ggfslam.eval.trajectory import ATE, associate
 from ggfslam.geometry.depth import normals_from_depth
-from ggfslam.mapping.keyframe_store import resize_rgbd
+from ggfslam.mapping.keyframe_store import resize_depth
 
 
 def ground_truth_alignment(est_stamps: np.ndarray, est_poses: np.ndarray, gt_stamps: np.ndarray,
@@ -30,15 +30,14 @@ def ground_truth_alignment(est_stamps: np.ndarray, est_poses: np.ndarray, gt_sta
     short, nearly straight path loose; a degree of it moves a wall 3 m away by 5 cm."""
     ate = ATE(max_diff)
     ate.process_data((est_stamps, est_poses, gt_stamps, gt_poses))
-    gi = np.searchsorted(gt_stamps, est_stamps).clip(1, len(gt_stamps) - 1)
-    gi = np.where(np.abs(gt_stamps[gi - 1] - est_stamps) < np.abs(gt_stamps[gi] - est_stamps), gi - 1, gi)
-    ok = np.abs(gt_stamps[gi] - est_stamps) <= max_diff
-    rel = gt_poses[gi[ok]] @ np.linalg.inv(est_poses[ok])  # [M, 4, 4], each T_gt inv(T_est)
+    ref, est = associate(est_stamps, est_poses, gt_stamps, gt_poses, max_diff)
+    gt, es = np.asarray(ref.poses_se3), np.asarray(est.poses_se3)  # [M, 4, 4] each, matched
+    rel = gt @ np.linalg.inv(es)  # [M, 4, 4], each T_gt inv(T_est)
     U, _, Vt = np.linalg.svd(rel[:, :3, :3].sum(axis=0))
     R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
     A = np.eye(4)
     A[:3, :3] = R
-    A[:3, 3] = (gt_poses[gi[ok], :3, 3] - est_poses[ok, :3, 3] @ R.T).mean(axis=0)
+    A[:3, 3] = (gt[:, :3, 3] - es[:, :3, 3] @ R.T).mean(axis=0)
     return A, 100 * ate.get_statistic("rmse")
 
 
@@ -61,8 +60,7 @@ def mesh_geometry_metrics(mapper, mesh: o3d.geometry.TriangleMesh | str | Path, 
     for i in range(0, len(est_poses), stride):
         ref = caster.cast(cam, A @ est_poses[i])["depth"].astype(np.float32)  # [H, W], 0 = no hit
         if dataset is not None:
-            f = dataset[i]
-            ref = np.where(resize_rgbd(f.rgb, f.depth, intr)[1] > 0, ref, 0.0).astype(np.float32)
+            ref = np.where(resize_depth(dataset[i].depth, intr) > 0, ref, 0.0).astype(np.float32)
         out = mapper.render(est_poses[i], intr)
         depth_l1.append(depth_l1_cm(out.depth.numpy(), ref))
         ref_n = normals_from_depth(ref, intr.fx, intr.fy, intr.cx, intr.cy)

@@ -7,7 +7,7 @@ import numpy as np
 
 from ggfslam.eval.image import LPIPS, depth_l1_cm, normal_error_deg, psnr, ssim_np
 from ggfslam.geometry.depth import normals_from_depth
-from ggfslam.mapping.keyframe_store import resize_rgbd
+from ggfslam.mapping.keyframe_store import resize_depth, resize_rgbd
 
 
 def nearest_keyframes(frame_indices: np.ndarray, kf_frames: dict[int, int]) -> np.ndarray:
@@ -39,7 +39,8 @@ def render_metrics(mapper, dataset, poses: np.ndarray, indices: np.ndarray, intr
     for i, e in zip(indices, exposure):
         frame = dataset[int(i)]
         gt_depth = frame.meta.get("depth_gt")
-        rgb, depth = resize_rgbd(frame.rgb, frame.depth if gt_depth is None else gt_depth, intr)
+        rgb, sensor_depth = resize_rgbd(frame.rgb, frame.depth, intr)
+        depth = sensor_depth if gt_depth is None else resize_depth(gt_depth, intr)
         t0 = time.perf_counter()
         out = mapper.render(poses[int(i)], intr, exposure_kf=int(e) if e >= 0 else None)
         render_s += time.perf_counter() - t0
@@ -49,7 +50,7 @@ def render_metrics(mapper, dataset, poses: np.ndarray, indices: np.ndarray, intr
                "depth_l1_cm": depth_l1_cm(out.depth.numpy(), depth),
                "normal_error_deg": normal_error_deg(out.normals.numpy(), ref_normals)}
         if gt_depth is not None:
-            row["depth_l1_sensor_cm"] = depth_l1_cm(out.depth.numpy(), resize_rgbd(frame.rgb, frame.depth, intr)[1])
+            row["depth_l1_sensor_cm"] = depth_l1_cm(out.depth.numpy(), sensor_depth)
         if lpips is not None and lpips.available:
             row["lpips"] = lpips(img, rgb)
         rows.append(row)

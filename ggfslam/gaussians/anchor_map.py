@@ -81,16 +81,21 @@ class AnchorMap(nn.Module):
         self._key_anchor = np.argsort(keys, kind="stable")
         self._keys = keys[self._key_anchor]
 
-    def anchor_of_points(self, points: np.ndarray) -> np.ndarray:
-        """Index [N] of the anchor whose voxel holds each point [N, 3] (-1: no anchor there)."""
-        out = np.full(len(points), -1, np.int64)
-        if len(points) == 0 or len(self._keys) == 0:
+    def _anchor_of_keys(self, keys: np.ndarray) -> np.ndarray:
+        """Index [N] of the anchor holding each voxel key [N] (-1: no anchor there)."""
+        out = np.full(len(keys), -1, np.int64)
+        if len(keys) == 0 or len(self._keys) == 0:
             return out
-        keys = voxel_keys(np.asarray(points, np.float64), self.voxel_size)
         pos = np.searchsorted(self._keys, keys).clip(max=len(self._keys) - 1)
         hit = self._keys[pos] == keys
         out[hit] = self._key_anchor[pos[hit]]
         return out
+
+    def anchor_of_points(self, points: np.ndarray) -> np.ndarray:
+        """Index [N] of the anchor whose voxel holds each point [N, 3] (-1: no anchor there)."""
+        if len(points) == 0:
+            return np.full(0, -1, np.int64)
+        return self._anchor_of_keys(voxel_keys(np.asarray(points, np.float64), self.voxel_size))
 
     def free_voxels(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Unique voxels of points [N, 3] not yet holding an anchor: (first point index [M], key [M])."""
@@ -98,11 +103,8 @@ class AnchorMap(nn.Module):
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
         keys = voxel_keys(points, self.voxel_size)
         uniq, first = np.unique(keys, return_index=True)
-        if len(self._keys):
-            pos = np.searchsorted(self._keys, uniq).clip(max=len(self._keys) - 1)
-            fresh = self._keys[pos] != uniq
-            uniq, first = uniq[fresh], first[fresh]
-        return first, uniq
+        fresh = self._anchor_of_keys(uniq) < 0
+        return first[fresh], uniq[fresh]
 
     # --- adding, removing --------------------------------------------------------------------------
     def new_anchor_values(self, points: np.ndarray, colors: np.ndarray, source_kf: int = -1,

@@ -7,11 +7,11 @@ that fell in each voxel, so a plane's anchors lie exactly on it, unlike their vo
   surface points averaged over cells of ``patch_cell`` voxels, each weighted by the depth points it stands
   for, oriented towards the camera of the keyframe that created the anchor;
 - ``kappa``: curvature, the smallest PCA eigenvalue over the sum of the three (0: plane, 1/3: isotropic);
-- ``T``: keyframes that observed the anchor's voxel;
+- ``T``: keyframes that saw the anchor (``AnchorMap.obs``);
 - ``spacing``: mean distance to the 8 nearest anchors (the surfel radius of AMR follows it).
-The patch is wide (24 cells of 2 voxels: ~0.2 m at a 4 cm voxel): with depth noise of 1-2 cm at 3 m, a
+The patch is wide (32 cells of 2 voxels: ~0.2 m at a 4 cm voxel): with depth noise of 1-2 cm at 3 m, a
 smaller patch cannot tell a wall from a 0.2 m pillar (curvature grows with the patch radius squared, noise
-shrinks); averaging cells first makes that patch cost 24 neighbours instead of ~100.
+shrinks); averaging cells first makes that patch cost 32 neighbours instead of ~100.
 The network input carries ``kappa / tau`` (clipped to 10) and ``log(1 + T)`` instead of the raw values so its
 inputs have comparable ranges; the prior uses the raw values.
 """
@@ -22,6 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 import torch
+
+from ggfslam.gaussians.anchor_map import voxel_keys
 
 N_FREQ = 6
 F_IN = 6 * N_FREQ + 3 + 1 + 1  # 41
@@ -44,8 +46,7 @@ def _knn(data: np.ndarray, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.
 
 def cell_means(points: np.ndarray, weights: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
     """Weighted mean point [C, 3] and total weight [C] of the points [N, 3] in each occupied cubic cell."""
-    ijk = np.floor(points / cell).astype(np.int64)
-    _, inv = np.unique(ijk, axis=0, return_inverse=True)
+    _, inv = np.unique(voxel_keys(points, cell), return_inverse=True)
     inv = inv.reshape(-1)
     w = np.bincount(inv, weights)
     mean = np.stack([np.bincount(inv, weights * points[:, j]) for j in range(3)], 1) / w[:, None]

@@ -27,13 +27,20 @@ def scaled_intrinsics(camera: Camera, width: int) -> Intrinsics:
     return Intrinsics.of(camera.resized(width, max(1, int(round(camera.height * width / camera.width)))))
 
 
+def resize_depth(depth: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    """Depth [H, W] at intr's size (nearest: no mixing across edges)."""
+    depth = depth.astype(np.float32, copy=False)
+    if depth.shape[1] == intr.width and depth.shape[0] == intr.height:
+        return depth
+    return cv2.resize(depth, (intr.width, intr.height), interpolation=cv2.INTER_NEAREST)
+
+
 def resize_rgbd(rgb: np.ndarray, depth: np.ndarray, intr: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
     """Colour [H, W, 3] (area average) and depth [H, W] (nearest: no mixing across edges) at intr's size."""
-    size = (intr.width, intr.height)
     if rgb.shape[1] == intr.width and rgb.shape[0] == intr.height:
         return rgb.astype(np.float32, copy=False), depth.astype(np.float32, copy=False)
-    return (cv2.resize(rgb.astype(np.float32, copy=False), size, interpolation=cv2.INTER_AREA),
-            cv2.resize(depth.astype(np.float32, copy=False), size, interpolation=cv2.INTER_NEAREST))
+    return (cv2.resize(rgb.astype(np.float32, copy=False), (intr.width, intr.height), interpolation=cv2.INTER_AREA),
+            resize_depth(depth, intr))
 
 
 @dataclass

@@ -100,12 +100,12 @@ class Mapper:
             pts, cols = self._seed_points(item.rgb, item.depth, T_wc, landmarks)
             first_new = self.map.n_anchors
             added = self._append_anchors(pts, cols, kf_id)
-            self._observe(item.rgb, item.depth, T_wc)
-            if added:
+            if self.ggf is not None:  # only the field reads the observations
+                self._observe(item.rgb, item.depth, T_wc)
                 # the new anchors were also in view of the latest keyframes: count those views too, so an
                 # anchor's T does not depend on whether it was created early or late in the sequence
                 new = np.arange(first_new, self.map.n_anchors)
-                for k in sorted(self.anchor_poses)[-self.cfg.window:]:
+                for k in sorted(self.anchor_poses)[-self.cfg.window:] if added else []:
                     prev = self.store.get(k)
                     self._observe(prev.rgb, prev.depth, self._poses.get(k, self.anchor_poses[k]), new)
             self.anchor_poses[kf_id] = T_wc.copy()
@@ -229,13 +229,15 @@ class Mapper:
         centres = {k: T[:3, 3] for k, T in self.anchor_poses.items()}
         self.ggf.refresh(self.map, centres, self.iteration)
 
-    def _field(self, g: DecodedGaussians) -> tuple[DecodedGaussians, torch.Tensor, torch.Tensor | None]:
-        """AMR on decoded children, L_morph and the P_2D channel [G, 1] (g, 0, None without the field)."""
+    def _field(self, g: DecodedGaussians, channel: bool = True
+               ) -> tuple[DecodedGaussians, torch.Tensor, torch.Tensor | None]:
+        """AMR on decoded children, L_morph and (with ``channel``) the P_2D channel [G, 1]; (g, 0, None)
+        without the field."""
         if self.ggf is None:
             return g, torch.zeros(()), None
         self._refresh_field()
         g, l_morph = self.ggf.shape(g, self.map)
-        return g, l_morph, self.ggf.p2d()[g.anchor_index][:, None]
+        return g, l_morph, self.ggf.p2d()[g.anchor_index][:, None] if channel else None
 
     def step(self, kf_id: int, poses: dict[int, np.ndarray] | None = None) -> dict[str, float]:
         """One Adam step on keyframe ``kf_id``; returns the loss terms."""
@@ -253,7 +255,7 @@ class Mapper:
             g, mask = self._decode(T_wc, self.intr)
             if len(g) == 0:
                 return {}
-            g, l_morph, _ = self._field(g)  # the planar-weight channel is for renders, not for training
+            g, l_morph, _ = self._field(g, channel=False)  # the planar-weight channel is for renders, not training
             out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, self.intr,
                             torch.from_numpy(invert(T_wc)).float(), settings=self.settings)
             color = self._expose(out.color, kf_id)
@@ -316,7 +318,7 @@ class Mapper:
                 g = self.map.decode(np.zeros(3))
             finally:
                 self.map.decoder.view_dependent = view
-            return self._field(g)[0]
+            return self._field(g, channel=False)[0]
 
     @torch.no_grad()
     def planarity(self) -> dict[str, torch.Tensor]:
