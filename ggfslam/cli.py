@@ -1,4 +1,4 @@
-"""Command line: ``ggfslam run | demo | eval | render | synth | config-help``."""
+"""Command line: ``ggfslam run | demo | eval | render | synth | bench | config-help``."""
 from __future__ import annotations
 
 import functools
@@ -173,6 +173,24 @@ def synth(
         shutil.rmtree(out)
     path = generate_synthetic(syn, camera, out_dir=out)
     console.print(f"wrote {frames} frames to {path}")
+
+
+@app.command()
+@user_errors
+def bench(
+    configs: list[Path] = typer.Argument(..., help="Sequence config files (YAML), e.g. configs/tum/fr3_cabinet_kf.yaml."),
+    out: Path = typer.Option(Path("runs/bench"), "--out", "-o",
+                             help="Folder of the runs (<out>/<sequence>/<variant>); finished runs there are reused."),
+    variants: str = typer.Option("base,ggf,ggf_gcgr", help="Comma list of variants: base, ggf, ggf_gcgr."),
+    set_: list[str] = typer.Option([], "--set", help="Override a config value in every run (repeatable)."),
+):
+    """Ablation of the paper's Table 5: base / +GGF / +GGF+GCGR on each sequence, printed as one table."""
+    from ggfslam.ablation import ablation, format_table
+
+    names = [v.strip() for v in variants.split(",") if v.strip()]
+    rows = ablation(configs, out, names, set_)
+    console.print(format_table(rows))
+    console.print(f"runs and ablation.json in {out}")
 
 
 @app.command("config-help")

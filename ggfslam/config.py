@@ -406,6 +406,80 @@ class GGFConfig(_Section):
         return self
 
 
+class GCGRConfig(_Section):
+    """GCGR (METHOD.md §7): the map's rendered depth and normals as GTSAM factors on keyframe poses, optimized
+    jointly with the reprojection factors of local bundle adjustment (``factors/gcgr.py``)."""
+
+    enabled: bool = False
+    """Add a depth and a normal factor to every keyframe optimized by local bundle adjustment (needs the map)."""
+    width: int = 0
+    """Width (px) at which the map is rendered for the factors; 0 = the mapper's training width. Lower is
+    cheaper but biased: the rasterizer's 2-D dilation makes a map trained at 320 px render ~1 cm nearer at
+    120 px (TUM fr3/cabinet), which the factors read as a pose error."""
+    pixels: int = 1024
+    """Pixels sampled per keyframe (rows of each factor), spread evenly over the eligible ones."""
+    planar_threshold: float = 0.5
+    """Pixels whose rendered planar weight (alpha-blended P_2D) is below this are not used; without the field
+    the rendered alpha stands in for it."""
+    min_alpha: float = 0.95
+    """Pixels where the map is less opaque than this are not used (holes, unmapped space)."""
+    flat_degrees: float = 10.0
+    """Pixels whose rendered normal differs from a neighbour's by more than this (degrees) are not used: at
+    creases and depth edges the render is not one plane and its pose derivative jumps."""
+    max_depth_residual: float = 0.1
+    """Pixels whose rendered and sensor depth differ by more than this (m) at linearization are not used."""
+    max_normal_degrees: float = 30.0
+    """... or whose rendered and sensor normals differ by more than this (degrees)."""
+    sigma: float = 0.01
+    """Noise of one weighted row (0.5 |D_hat - D| in m, 0.05 (1 - N_hat . N)): one sigma keeps METHOD's
+    0.5 : 0.05 weighting; 0.01 = 2 cm of depth (a Kinect's depth is off by 1-2 cm at 2 m in a way that
+    depth-only alignment reads as 0.5-2 degrees of rotation on TUM fr3/cabinet)."""
+    effective_pixels: int = 16
+    """Rows are whitened by sigma * sqrt(rows / effective_pixels), so a factor carries the information of this
+    many independent pixels whatever the budget: the map's errors are correlated over a surface, and counting
+    every sampled pixel as independent lets a biased map overrule the reprojection factors."""
+    huber: float = 1.345
+    """Huber threshold of each whitened row (GTSAM's scalar reweighting: one kernel per pixel)."""
+    jacobian: Literal["analytic", "central"] = "analytic"
+    """analytic: ray-plane derivative of the rendered depth and normals (one render); central: central
+    differences of renders along the six tangent directions (13 renders)."""
+    step: float = 0.001
+    """Step (rad, m) of the central differences."""
+    relinearize_rotation: float = 1.0
+    """A factor re-renders when the optimizer moves its pose more than this (degrees) from where it rendered..."""
+    relinearize_translation: float = 0.01
+    """... or more than this (m); below, errors come from the first-order model of the last render."""
+    max_age: int = 500
+    """A keyframe's cached render is redone when the map trained this many steps since it was made ..."""
+    renders_per_ba: int = 1
+    """... but one local BA renders at most this many keyframes (the new one first): a render of the map costs
+    ~60-80 ms on 2 CPU cores, and BA runs inside tracking in sequential mode."""
+    per_frame: Literal["auto", "on", "off"] = "auto"
+    """Refine every tracked frame's pose with its GCGR factors: auto = on with the GPU (gsplat) renderer only."""
+    per_frame_sigmas: tuple[float, float] = (0.01, 0.01)
+    """Prior of the per-frame refinement on the tracked pose: rotation (rad), translation (m)."""
+
+    @model_validator(mode="after")
+    def _check(self):
+        for name in ("pixels", "effective_pixels"):
+            if getattr(self, name) < 8:
+                raise ValueError(f"{name} must be >= 8")
+        if self.width != 0 and self.width < 8:
+            raise ValueError("width must be 0 (the training width) or >= 8")
+        for name in ("planar_threshold", "min_alpha"):
+            if not 0 <= getattr(self, name) < 1:
+                raise ValueError(f"{name} must be in [0, 1)")
+        for name in ("flat_degrees", "max_normal_degrees", "max_depth_residual", "sigma", "huber", "step", "relinearize_rotation",
+                     "relinearize_translation"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0")
+        if self.max_age < 1 or self.renders_per_ba < 1:
+            raise ValueError("max_age and renders_per_ba must be >= 1")
+        if min(self.per_frame_sigmas) <= 0:
+            raise ValueError("per_frame_sigmas must be > 0")
+        return self
+
+
 class EvalConfig(_Section):
     """Evaluation of a run."""
 
@@ -445,6 +519,8 @@ class Config(_Section):
     """Gaussian map."""
     ggf: GGFConfig = GGFConfig()
     """Geometric-Gaussian Field (planar probability, AMR, AOF) of the Gaussian map."""
+    gcgr: GCGRConfig = GCGRConfig()
+    """GCGR: rendered depth/normal factors in bundle adjustment."""
     eval: EvalConfig = EvalConfig()
     """Evaluation."""
     runtime: RuntimeConfig = RuntimeConfig()
@@ -455,6 +531,8 @@ class Config(_Section):
         if self.mapping.enabled and self.tracking.method != "orb":
             raise ValueError("mapping.enabled needs tracking.method 'orb' (the map is trained on its keyframes); "
                              "set mapping.enabled: false to run the odometry baseline alone")
+        if self.gcgr.enabled and not self.mapping.enabled:
+            raise ValueError("gcgr.enabled needs mapping.enabled (the factors render the Gaussian map)")
         return self
 
 

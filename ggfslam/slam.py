@@ -83,6 +83,18 @@ def make_mapper(config: Config, camera, tracker, run_dir: Path):
                   config.runtime.seed, ggf=config.ggf)
 
 
+def attach_gcgr(config: Config, tracker, mapper, camera) -> None:
+    """With ``gcgr.enabled``, give the backend the map's GCGR factors (and per-frame refinement where asked)."""
+    if not config.gcgr.enabled or mapper is None:
+        return
+    from ggfslam.backend.gcgr_source import GCGRSource
+    from ggfslam.render.api import select_backend
+
+    per_frame = config.gcgr.per_frame == "on" or (
+        config.gcgr.per_frame == "auto" and select_backend(config.render.backend) == "gsplat")
+    tracker.backend.attach_gcgr(GCGRSource(mapper, camera, config.gcgr, per_frame))
+
+
 def _keyframe_landmarks(tracker, kf_id: int) -> np.ndarray:
     """World positions [L, 3] of the live landmarks a keyframe observes."""
     m = tracker.map
@@ -157,6 +169,7 @@ def run(config: Config, out_dir: str | Path, overwrite: bool = False, progress: 
                 # keyframes stored after the checkpoint are made again, under the same ids, as the run goes on
                 mapper.store.retain(ckpt["kf_frames"])
             worker = MappingWorker(mapper, config.mapping.concurrent, config.mapping.threads)
+            attach_gcgr(config, tracker, mapper, dataset.camera)
             for kf_id, lms in (ckpt or {}).get("pending", {}).items():
                 worker.enqueue(kf_id, lms)
         if ckpt is not None:

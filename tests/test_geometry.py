@@ -99,3 +99,25 @@ def test_rotation_angle_and_pnp_ransac_recover_a_known_pose():
     assert set(range(10, 60)) <= set(inliers.tolist()) and not set(range(10)) & set(inliers.tolist())
     d = invert(T_wc) @ T
     assert np.linalg.norm(d[:3, 3]) < 1e-6 and rotation_angle(d[:3, :3]) < 1e-6
+
+
+def test_resize_depth_keeps_pixel_centres_and_edges():
+    from ggfslam.data.types import Camera
+    from ggfslam.geometry.depth import resize_depth_image
+
+    W, H = 64, 48
+    cam = Camera(fx=50.0, fy=50.0, cx=31.5, cy=23.5, width=W, height=H)
+    u = np.arange(W, dtype=np.float32)[None, :].repeat(H, 0)
+    tilted = 1.0 + 0.01 * u  # [H, W] depth linear in u
+    for k in (2, 4):
+        small = cam.resized(W // k, H // k)
+        r = resize_depth_image(tilted, small.width, small.height)
+        # the resized pixel u' looks where the full-size pixel (u' + 0.5) k - 0.5 did (Camera.resized's rule);
+        # plain INTER_NEAREST would take pixel k u', a (k - 1) / 2 pixel shift
+        uc = (np.arange(small.width) + 0.5) * k - 0.5
+        np.testing.assert_allclose(r, np.broadcast_to(1.0 + 0.01 * uc, r.shape), atol=1e-5)
+        assert (small.cx + 0.5) * k - 0.5 == pytest.approx(cam.cx)
+    step = np.where(u < 31, 1.0, 3.0).astype(np.float32)  # a depth edge inside a 4x4 block
+    step[:, 29] = 0.0  # and a hole
+    r = resize_depth_image(step, 16, 12)
+    assert set(np.unique(r)) <= {0.0, 1.0, 3.0}  # no averaged depth between the two surfaces

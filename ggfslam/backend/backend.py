@@ -49,6 +49,7 @@ class Backend:
             from ggfslam.backend.loop_closure import LoopDetector
 
             self.loop_detector = LoopDetector(camera)
+        self.gcgr = None  # a GCGRSource once the map is attached (attach_gcgr)
         self._queue: queue.Queue | None = None
         self._thread: threading.Thread | None = None
         self._error: BaseException | None = None
@@ -62,7 +63,7 @@ class Backend:
         if self._queue is not None and self._queue.unfinished_tasks:
             raise RuntimeError("backend: drain() the keyframe queue before pickling")
         state = self.__dict__.copy()
-        state.update(_queue=None, _thread=None, _error=None)
+        state.update(_queue=None, _thread=None, _error=None, gcgr=None)  # the map is saved by the mapper
         return state
 
     def __setstate__(self, state: dict) -> None:
@@ -79,10 +80,16 @@ class Backend:
         if self._error is not None:
             raise RuntimeError("backend worker failed") from self._error
 
+    def attach_gcgr(self, source) -> None:
+        """Give local bundle adjustment the Gaussian map's GCGR factors (a ``GCGRSource``; None detaches)."""
+        self.gcgr = source
+
     # --- keyframes in ---------------------------------------------------------------------------
-    def insert_keyframe(self, kf: KeyFrame) -> None:
-        """Hand a new keyframe (already in the map) to the backend."""
+    def insert_keyframe(self, kf: KeyFrame, depth: np.ndarray | None = None) -> None:
+        """Hand a new keyframe (already in the map) and its depth image [H, W] (m, for GCGR) to the backend."""
         self.stats.keyframes += 1
+        if self.gcgr is not None and depth is not None:
+            self.gcgr.add_keyframe(kf.id, depth)
         if self._queue is not None:
             if self._error is not None:
                 raise RuntimeError("backend worker failed") from self._error
@@ -115,7 +122,8 @@ class Backend:
             self.stats.fused_landmarks += merged
         if self.bcfg.planes:
             associate_planes(self.map, kf_id, self.bcfg)
-        stats: BAStats | None = local_bundle_adjustment(self.map, kf_id, self.camera, self.tcfg, self.bcfg)
+        stats: BAStats | None = local_bundle_adjustment(self.map, kf_id, self.camera, self.tcfg, self.bcfg,
+                                                           self.gcgr)
         if stats is not None:
             self.stats.ba_runs += 1
             self.stats.ba_seconds.append(stats.seconds)
@@ -182,4 +190,5 @@ class Backend:
             "landmarks_culled": s.landmarks_culled, "outliers_removed": s.outliers_removed,
             "fused_observations": s.fused_observations, "fused_landmarks": s.fused_landmarks,
             "loops": len(s.loops),
+            **({"gcgr": self.gcgr.summary()} if self.gcgr is not None else {}),
         }

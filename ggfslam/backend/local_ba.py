@@ -41,12 +41,32 @@ class BAStats:
     error_after: float
     seconds: float
     plane_factors: int = 0  # plane observations in the graph
+    gcgr_factors: int = 0  # GCGR depth + normal factors in the graph
 
 
-def local_bundle_adjustment(smap: SlamMap, kf_id: int, camera: Camera, tcfg: TrackingConfig,
-                            bcfg: BackendConfig) -> BAStats | None:
-    """Optimize the window around keyframe ``kf_id`` with LM and drop outlier observations; None if too small."""
-    t0 = time.perf_counter()
+@dataclass
+class LocalGraph:
+    """The factor graph of one local bundle adjustment and what its outlier pass needs."""
+
+    graph: gtsam.NonlinearFactorGraph
+    values: gtsam.Values
+    window: list[int]  # keyframes optimized (the fixed ones among them hold the gauge)
+    fixed: set[int]  # keyframes held by stiff priors
+    lms: np.ndarray  # [L] landmark ids
+    obs: list[tuple[int, int, int]]  # (keyframe, landmark, keypoint) of each observation factor
+    obs_factors: list  # the observation factors, last in the graph, in the order of obs
+    sigmas: list[float]  # pixel sigma of each observation
+    feats: dict  # keyframe id -> Features
+    planes_w: dict  # plane id -> world coefficients [4]
+    n_plane_obs: int
+    n_gcgr: int  # GCGR factors (two per keyframe that has them)
+
+
+def local_graph(smap: SlamMap, kf_id: int, camera: Camera, tcfg: TrackingConfig, bcfg: BackendConfig,
+                gcgr=None) -> LocalGraph | None:
+    """The local BA graph around keyframe ``kf_id`` at the map's current estimates; None if too small.
+
+    With a ``GCGRSource`` every optimized (not fixed) keyframe also gets its GCGR depth and normal factors."""
     level_scale = tcfg.scale_factor ** np.arange(tcfg.n_levels)
     with smap.lock:  # snapshot, so tracking can go on while the optimizer runs
         window = smap.local_keyframes(kf_id, bcfg.window, temporal=bcfg.temporal_window)
@@ -103,6 +123,11 @@ def local_bundle_adjustment(smap: SlamMap, kf_id: int, camera: Camera, tcfg: Tra
         values.insert(P(pid), gtsam.OrientedPlane3(*pw))
     for k, pid, z in plane_obs:
         graph.add(plane_factor(k, pid, z, bcfg.plane_sigmas))
+    n_gcgr = 0
+    if gcgr is not None:  # before the observations: the outlier pass below keeps the graph's head as it is
+        for f in gcgr.window_factors({k: poses[k] for k in window if k not in fixed}):
+            graph.add(f)
+            n_gcgr += 1
     sigmas, factors = [], []
     for k, lm, kp in obs:
         f = feats[k]
@@ -112,6 +137,21 @@ def local_bundle_adjustment(smap: SlamMap, kf_id: int, camera: Camera, tcfg: Tra
         graph.add(factor)
         factors.append(factor)
         sigmas.append(sigma)
+    return LocalGraph(graph, values, window, fixed, lms, obs, factors, sigmas, feats, planes_w, len(plane_obs),
+                      n_gcgr)
+
+
+def local_bundle_adjustment(smap: SlamMap, kf_id: int, camera: Camera, tcfg: TrackingConfig,
+                            bcfg: BackendConfig, gcgr=None) -> BAStats | None:
+    """Optimize the window around keyframe ``kf_id`` with LM and drop outlier observations; None if too small.
+
+    With a ``GCGRSource`` every optimized (not fixed) keyframe also gets its GCGR depth and normal factors."""
+    t0 = time.perf_counter()
+    lg = local_graph(smap, kf_id, camera, tcfg, bcfg, gcgr)
+    if lg is None:
+        return None
+    graph, values, window, fixed, lms, obs = lg.graph, lg.values, lg.window, lg.fixed, lg.lms, lg.obs
+    factors, sigmas, feats, planes_w = lg.obs_factors, lg.sigmas, lg.feats, lg.planes_w
     err0 = graph.error(values)
     result = _optimize(graph, values, bcfg.iterations)
     if result is None:  # an indeterminate system (a landmark seen once without depth): keep the old estimate
@@ -151,4 +191,4 @@ def local_bundle_adjustment(smap: SlamMap, kf_id: int, camera: Camera, tcfg: Tra
         for pid in planes_w:
             smap.planes[pid] = result.atOrientedPlane3(P(pid)).planeCoefficients()
     return BAStats(len(window), len(fixed), len(lms), len(obs), len(outliers), err0, err1,
-                   time.perf_counter() - t0, len(plane_obs))
+                   time.perf_counter() - t0, lg.n_plane_obs, lg.n_gcgr)

@@ -230,7 +230,7 @@ class OrbTracker:
                 self.map.add_landmarks(Xw, F.descriptors[fresh], kf, fresh)
         self.ref_kf = kf.id
         self.last_kf_frame = frame.index
-        self.backend.insert_keyframe(kf)
+        self.backend.insert_keyframe(kf, frame.depth)
         return kf
 
     def _need_keyframe(self, frame: Frame, T: np.ndarray, n_tracked: int) -> bool:
@@ -295,6 +295,9 @@ class OrbTracker:
                                             invert(T_ref) @ self.last_T, TrackingState.LOST))
             self.velocity = np.eye(4)
             return TrackResult(self.last_T.copy(), False, 0.0, TrackingState.LOST)
+        gcgr = self.backend.gcgr
+        if gcgr is not None and gcgr.per_frame and state == TrackingState.OK:
+            T = gcgr.refine_frame(T, frame.depth)  # per-frame GCGR: the map pulls the tracked pose
         self.state = state
         self.velocity = invert(self.last_T) @ T if state == TrackingState.OK else np.eye(4)
         weak = len(lm) < self.cfg.min_matches  # only a dense estimate placed this frame

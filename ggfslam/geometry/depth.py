@@ -4,6 +4,32 @@ from __future__ import annotations
 import numpy as np
 
 
+def resize_depth_image(depth: np.ndarray, width: int, height: int, max_spread: float = 0.05) -> np.ndarray:
+    """Depth [H, W] resized to [height, width] without shifting it and without inventing surfaces.
+
+    Pixel centres stay where ``Camera.resized`` puts them: for an integer factor k each output pixel is the mean
+    of its k x k block when the block is all valid and flat (spread <= ``max_spread`` of its depth); at edges and
+    holes it takes the block pixel nearest the centre, so no depth is averaged across a discontinuity. Other
+    factors use OpenCV's centre-exact nearest. (Plain ``INTER_NEAREST`` takes the block's first pixel: a shift
+    of (k - 1) / 2 input pixels, a systematic rotation between depth and colour / intrinsics.)
+    """
+    import cv2
+
+    depth = np.asarray(depth, dtype=np.float32)
+    H, W = depth.shape
+    if (W, H) == (width, height):
+        return depth
+    nearest = cv2.resize(depth, (width, height), interpolation=cv2.INTER_NEAREST_EXACT)
+    k = W // width
+    if k < 2 or W != k * width or H != k * height:
+        return nearest
+    blocks = depth.reshape(height, k, width, k).transpose(0, 2, 1, 3).reshape(height, width, k * k)
+    lo, hi = blocks.min(-1), blocks.max(-1)
+    mean = blocks.mean(-1, dtype=np.float64).astype(np.float32)
+    flat = (lo > 0) & (hi - lo <= max_spread * mean)
+    return np.where(flat, mean, nearest)
+
+
 def pixel_grid(width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
     """Pixel-centre coordinates u [H, W] and v [H, W] (integer pixel = centre, OpenCV convention)."""
     u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from ggfslam.data.types import Camera
-from ggfslam.geometry.depth import normals_from_depth
+from ggfslam.geometry.depth import normals_from_depth, resize_depth_image
 from ggfslam.render.types import Intrinsics
 
 
@@ -28,15 +28,12 @@ def scaled_intrinsics(camera: Camera, width: int) -> Intrinsics:
 
 
 def resize_depth(depth: np.ndarray, intr: Intrinsics) -> np.ndarray:
-    """Depth [H, W] at intr's size (nearest: no mixing across edges)."""
-    depth = depth.astype(np.float32, copy=False)
-    if depth.shape[1] == intr.width and depth.shape[0] == intr.height:
-        return depth
-    return cv2.resize(depth, (intr.width, intr.height), interpolation=cv2.INTER_NEAREST)
+    """Depth [H, W] at intr's size (centred; no mixing across edges: ``resize_depth_image``)."""
+    return resize_depth_image(depth, intr.width, intr.height)
 
 
 def resize_rgbd(rgb: np.ndarray, depth: np.ndarray, intr: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
-    """Colour [H, W, 3] (area average) and depth [H, W] (nearest: no mixing across edges) at intr's size."""
+    """Colour [H, W, 3] (area average) and depth [H, W] (``resize_depth``) at intr's size."""
     if rgb.shape[1] == intr.width and rgb.shape[0] == intr.height:
         return rgb.astype(np.float32, copy=False), depth.astype(np.float32, copy=False)
     return (cv2.resize(rgb.astype(np.float32, copy=False), (intr.width, intr.height), interpolation=cv2.INTER_AREA),

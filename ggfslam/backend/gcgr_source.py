@@ -1,0 +1,165 @@
+"""GCGR in the SLAM system: each keyframe's GCGR factors (``factors/gcgr.py``) built from the Gaussian map.
+
+Local bundle adjustment asks ``window_factors`` for the keyframes it optimizes. The source renders the
+mapper at the factors' resolution (``gcgr.width``, by default the training resolution), keeps each new keyframe's sensor depth (older keyframes fall
+back to the mapper's keyframe store), and caches one ``GCGRModel`` per keyframe: a model re-renders by itself when
+the optimizer moves its pose past the relinearization threshold, and is rebuilt when the map has trained
+``gcgr.max_age`` steps since its render. ``refine_frame`` is the per-frame GCGR pose refinement of tracked frames.
+The refined keyframe poses reach the mapper and the frontend through the SLAM map, like every BA result.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from collections import OrderedDict
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import X
+
+from factors.gcgr import GCGRModel, MapView, SensorView
+from ggfslam.config import GCGRConfig
+from ggfslam.mapping.keyframe_store import resize_depth, scaled_intrinsics
+
+CACHE = 48  # keyframes whose sensor views and models are kept (a few BA windows)
+
+
+class GCGRSource:
+    """GCGR factors and per-frame refinement from a ``Mapper`` (see the module docstring)."""
+
+    def __init__(self, mapper, camera, cfg: GCGRConfig, per_frame: bool = False):
+        self.mapper, self.cfg, self.per_frame = mapper, cfg, per_frame
+        self.intr = mapper.intr if cfg.width == 0 else scaled_intrinsics(camera, cfg.width)
+        self._sensors: OrderedDict[int, SensorView] = OrderedDict()
+        self._models: OrderedDict[int, tuple[GCGRModel, int]] = OrderedDict()  # id -> (model, map iteration)
+        self._lock = threading.Lock()  # tracking adds keyframes while the backend thread builds factors
+        self.models_built = 0
+        self.factors_added = 0
+        self.pixels_total = 0
+        self.renders = 0
+        self.render_seconds = 0.0
+        self.frames_refined = 0
+        self.refine_seconds = 0.0
+
+    # --- inputs --------------------------------------------------------------------------------------
+    def add_keyframe(self, kf_id: int, depth: np.ndarray) -> None:
+        """Keep a new keyframe's sensor depth [H, W] (m) at the factors' resolution."""
+        view = SensorView.from_depth(resize_depth(depth, self.intr), self.intr)
+        with self._lock:
+            self._sensors[kf_id] = view
+            while len(self._sensors) > CACHE:
+                self._sensors.popitem(last=False)
+
+    def sensor(self, kf_id: int) -> SensorView | None:
+        """The keyframe's sensor view: kept since insertion, else from the mapper's store, else None."""
+        with self._lock:
+            if kf_id in self._sensors:
+                return self._sensors[kf_id]
+        if kf_id not in self.mapper.store:
+            return None
+        return SensorView.from_depth(resize_depth(self.mapper.store.get(kf_id).depth, self.intr), self.intr)
+
+    def ready(self) -> bool:
+        """Whether the map has been trained at all (an empty map says nothing about poses)."""
+        return self.mapper.map.n_anchors > 0 and self.mapper.iteration > 0
+
+    def render(self, T_wc: np.ndarray) -> MapView:
+        """The map rendered at T_wc [4, 4] at the factors' resolution."""
+        t0 = time.perf_counter()
+        view = MapView.from_render(self.mapper.render(T_wc, self.intr))
+        self.renders += 1
+        self.render_seconds += time.perf_counter() - t0
+        return view
+
+    # --- factors -------------------------------------------------------------------------------------
+    def model(self, kf_id: int, T_wc: np.ndarray, fresh: bool = True) -> GCGRModel | None:
+        """The keyframe's GCGR model at pose T_wc: the cached one while the map is fresh enough (any cached one
+        with ``fresh=False``), else a new render; None without a map or sensor depth."""
+        if not self.ready():
+            return None
+        it = self.mapper.iteration
+        with self._lock:
+            cached = self._models.get(kf_id)
+        if cached is not None and (not fresh or it - cached[1] < self.cfg.max_age):
+            return cached[0]
+        if not fresh:
+            return None
+        sensor = self.sensor(kf_id)
+        if sensor is None:
+            return None
+        m = GCGRModel(kf_id, self.render, sensor, T_wc, self.cfg)
+        self.models_built += 1
+        with self._lock:
+            self._models[kf_id] = (m, it)
+            self._models.move_to_end(kf_id)
+            while len(self._models) > CACHE:
+                self._models.popitem(last=False)
+        return m
+
+    def window_factors(self, poses: dict[int, np.ndarray]) -> list:
+        """GCGR depth and normal factors of the keyframes in ``poses`` (id -> T_wc [4, 4]) for one local BA.
+
+        At most ``gcgr.renders_per_ba`` new renders: the newest keyframe first, then the keyframes whose cached
+        render is oldest; the others use their cached render (however old) or get no factor this time."""
+        if not self.ready():
+            return []
+        with self._lock:
+            age = {k: self.mapper.iteration - self._models[k][1] if k in self._models else None for k in poses}
+        newest = max(poses, default=None)
+        # new renders for: the newest keyframe, then missing caches, then the stalest ones past max_age
+        order = sorted(poses, key=lambda k: (k != newest, age[k] is not None, -(age[k] or 0)))
+        budget = self.cfg.renders_per_ba
+        out = []
+        for k in order:
+            want = age[k] is None or age[k] >= self.cfg.max_age or k == newest
+            m = None
+            if want and budget > 0:
+                with self._lock:
+                    self._models.pop(k, None)
+                m = self.model(k, poses[k])
+                budget -= m is not None
+            if m is None:
+                m = self.model(k, poses[k], fresh=False)
+            if m is None:
+                continue
+            fs = m.factors()
+            out += fs
+            self.factors_added += len(fs)
+            self.pixels_total += len(m) * (len(fs) > 0)
+        return out
+
+    def refine_frame(self, T_wc: np.ndarray, depth: np.ndarray, iterations: int = 5) -> np.ndarray:
+        """Per-frame GCGR: the tracked pose T_wc [4, 4] refined against the map under a prior on it."""
+        if not self.ready():
+            return T_wc
+        t0 = time.perf_counter()
+        sensor = SensorView.from_depth(resize_depth(depth, self.intr), self.intr)
+        m = GCGRModel(0, self.render, sensor, T_wc, self.cfg)
+        fs = m.factors()
+        if not fs:
+            return T_wc
+        s_rot, s_trans = self.cfg.per_frame_sigmas
+        graph = gtsam.NonlinearFactorGraph()
+        graph.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(T_wc), gtsam.noiseModel.Diagonal.Sigmas(
+            np.array([s_rot] * 3 + [s_trans] * 3))))
+        for f in fs:
+            graph.add(f)
+        values = gtsam.Values()
+        values.insert(X(0), gtsam.Pose3(T_wc))
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(iterations)
+        try:
+            T = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize().atPose3(X(0)).matrix()
+        except RuntimeError:  # an indeterminate system: keep the tracked pose
+            return T_wc
+        self.frames_refined += 1
+        self.refine_seconds += time.perf_counter() - t0
+        return T
+
+    def summary(self) -> dict:
+        """GCGR figures for metrics.json (``backend.gcgr``)."""
+        return {"models": self.models_built, "factors": self.factors_added,
+                "pixels_mean": self.pixels_total / max(self.factors_added // 2, 1),
+                "renders": self.renders, "render_ms_mean": 1000 * self.render_seconds / max(self.renders, 1),
+                "frames_refined": self.frames_refined,
+                "refine_ms_mean": 1000 * self.refine_seconds / max(self.frames_refined, 1)}
