@@ -21,8 +21,12 @@ Jacobians (``jacobian`` in ``GCGRConfig``):
   that plane: ``dD/domega = -(p x n) / (n . r)``, ``dD/dv = -n / (n . r)`` with ``r = K^-1 [u, v, 1]``; the
   normal turns with the camera: ``d(N_hat . N)/domega = -(N_hat x N)``, and does not change with v. One render.
 - ``central``: central differences of renders at ``T_wc * Exp(+-h e_j)``, 13 renders.
-Both are checked against ``gtsam.utils.numerical_derivative`` of fresh renders in ``tests/test_gcgr.py``;
-``benchmarks/bench_gcgr.py`` measures their agreement and cost on a trained map.
+Both are checked against ``gtsam.utils.numerical_derivative`` of fresh renders in ``tests/test_gcgr.py``.
+Measured there (80x60 corner scene, 2026-11-26), relative Frobenius error against numerical derivatives with
+the factor's trust-region step (5-10 mm / mrad): depth rows 2.8-3.1 % analytic vs 6 % central (h = 1 mm); normal
+rows 33-43 % analytic vs 180 % central (rendered normals are central differences of a blended depth map, noisy at
+the pixel scale; a 1 mm central difference follows that noise). Cost: 1 render against 13. Hence ``analytic``
+is the default. (The renderer's reverse-mode pose gradient gives J^T r, one backward pass per row for J.)
 
 GTSAM evaluates ``error()`` at every trial step, so a factor never renders per call: it keeps the rows and
 Jacobian of its last render (the linearization point) and returns the first-order model
