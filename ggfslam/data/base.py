@@ -11,7 +11,6 @@ import numpy as np
 from ggfslam.data.imageio import read_depth, read_rgb
 from ggfslam.data.types import Camera, Frame
 from ggfslam.errors import DatasetError
-from ggfslam.geometry.depth import resize_depth_image
 
 
 class RGBDDataset(ABC):
@@ -119,7 +118,8 @@ class RGBDDataset(ABC):
         if self._resize is not None and self._resize != (raw_cam.width, raw_cam.height):
             w, h = self._resize
             rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
-            depth = resize_depth_image(depth, w, h)  # centred, and no averaging across a discontinuity
+            # nearest keeps depth edges sharp: averaging across a discontinuity invents surfaces
+            depth = cv2.resize(depth, (w, h), interpolation=cv2.INTER_NEAREST)
         gt = self._raw_gt()
         return Frame(
             index=i,
