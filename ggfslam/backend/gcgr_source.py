@@ -18,6 +18,7 @@ import numpy as np
 from gtsam.symbol_shorthand import X
 
 from factors.gcgr import GCGRModel, MapView, SensorView
+from ggfslam.backend.local_ba import _optimize
 from ggfslam.config import GCGRConfig
 from ggfslam.mapping.keyframe_store import resize_depth, scaled_intrinsics
 
@@ -146,12 +147,10 @@ class GCGRSource:
             graph.add(f)
         values = gtsam.Values()
         values.insert(X(0), gtsam.Pose3(T_wc))
-        params = gtsam.LevenbergMarquardtParams()
-        params.setMaxIterations(iterations)
-        try:
-            T = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize().atPose3(X(0)).matrix()
-        except RuntimeError:  # an indeterminate system: keep the tracked pose
+        result = _optimize(graph, values, iterations)
+        if result is None:  # an indeterminate system: keep the tracked pose
             return T_wc
+        T = result.atPose3(X(0)).matrix()
         self.frames_refined += 1
         self.refine_seconds += time.perf_counter() - t0
         return T
