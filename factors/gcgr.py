@@ -248,11 +248,11 @@ class GCGRModel:
 
         return gtsam.CustomFactor(self.noise(), [X(self.key)], evaluate)
 
-    def factors(self) -> list[gtsam.CustomFactor]:
-        """The depth and the normal factor; [] when fewer than ``MIN_PIXELS`` pixels are usable."""
+    def factors(self) -> dict[str, gtsam.CustomFactor]:
+        """The factors by kind (``KINDS``: depth, normal); none when fewer than ``MIN_PIXELS`` pixels are usable."""
         if len(self.pixels) < MIN_PIXELS:
-            return []
-        return [self.factor(k) for k in KINDS]
+            return {}
+        return {k: self.factor(k) for k in KINDS}
 
 
 def whitened_rows(model: GCGRModel, kind: str, pose: gtsam.Pose3) -> np.ndarray:

@@ -114,7 +114,7 @@ def test_gcgr_alone_pulls_a_perturbed_pose_back_on_a_textureless_scene(scene):
     for xi0 in (XI_START, np.array([0.03, 0.02, -0.02, -0.06, 0.05, -0.05])):
         model = GCGRModel(0, render, sensor, gtsam.Pose3.Expmap(xi0).matrix(), GCGRConfig())
         graph = gtsam.NonlinearFactorGraph()
-        for f in model.factors():
+        for f in model.factors().values():
             graph.add(f)
         values = gtsam.Values()
         values.insert(X(0), gtsam.Pose3.Expmap(xi0))

@@ -73,21 +73,17 @@ class GCGRSource:
         return view
 
     # --- factors -------------------------------------------------------------------------------------
-    def model(self, kf_id: int, T_wc: np.ndarray, fresh: bool = True) -> GCGRModel | None:
-        """The keyframe's GCGR model at pose T_wc: the cached one while the map is fresh enough (any cached one
-        with ``fresh=False``), else a new render; None without a map or sensor depth."""
-        if not self.ready():
-            return None
-        it = self.mapper.iteration
+    def _cached(self, kf_id: int) -> tuple[GCGRModel, int] | None:
+        """The keyframe's cached (model, map iteration of its render), or None."""
         with self._lock:
-            cached = self._models.get(kf_id)
-        if cached is not None and (not fresh or it - cached[1] < self.cfg.max_age):
-            return cached[0]
-        if not fresh:
-            return None
+            return self._models.get(kf_id)
+
+    def _build(self, kf_id: int, T_wc: np.ndarray) -> GCGRModel | None:
+        """A new model of the keyframe rendered at T_wc [4, 4], replacing its cached one; None without sensor depth."""
         sensor = self.sensor(kf_id)
         if sensor is None:
             return None
+        it = self.mapper.iteration
         m = GCGRModel(kf_id, self.render, sensor, T_wc, self.cfg)
         self.models_built += 1
         with self._lock:
@@ -97,34 +93,42 @@ class GCGRSource:
                 self._models.popitem(last=False)
         return m
 
-    def window_factors(self, poses: dict[int, np.ndarray]) -> list:
-        """GCGR depth and normal factors of the keyframes in ``poses`` (id -> T_wc [4, 4]) for one local BA.
+    def model(self, kf_id: int, T_wc: np.ndarray) -> GCGRModel | None:
+        """The keyframe's GCGR model at pose T_wc: the cached one while its render is younger than
+        ``gcgr.max_age`` map steps, else a new render; None without a map or sensor depth."""
+        if not self.ready():
+            return None
+        cached = self._cached(kf_id)
+        if cached is not None and self.mapper.iteration - cached[1] < self.cfg.max_age:
+            return cached[0]
+        return self._build(kf_id, T_wc)
 
-        At most ``gcgr.renders_per_ba`` new renders: the newest keyframe first, then the keyframes whose cached
-        render is oldest; the others use their cached render (however old) or get no factor this time."""
+    def window_factors(self, poses: dict[int, np.ndarray]) -> list[tuple[int, str, gtsam.CustomFactor]]:
+        """(keyframe, kind, factor) of the GCGR factors of the keyframes in ``poses`` (id -> T_wc [4, 4]) for one
+        local BA.
+
+        At most ``gcgr.renders_per_ba`` new renders: the newest keyframe first, then the keyframes without a
+        render, then those whose render is older than ``gcgr.max_age``, stalest first; the others use their
+        cached render (however old) or get no factor this time."""
         if not self.ready():
             return []
-        with self._lock:
-            age = {k: self.mapper.iteration - self._models[k][1] if k in self._models else None for k in poses}
+        it = self.mapper.iteration
+        cached = {k: self._cached(k) for k in poses}
+        age = {k: None if c is None else it - c[1] for k, c in cached.items()}
         newest = max(poses, default=None)
-        # new renders for: the newest keyframe, then missing caches, then the stalest ones past max_age
         order = sorted(poses, key=lambda k: (k != newest, age[k] is not None, -(age[k] or 0)))
         budget = self.cfg.renders_per_ba
         out = []
         for k in order:
-            want = age[k] is None or age[k] >= self.cfg.max_age or k == newest
-            m = None
-            if want and budget > 0:
-                with self._lock:
-                    self._models.pop(k, None)
-                m = self.model(k, poses[k])
-                budget -= m is not None
-            if m is None:
-                m = self.model(k, poses[k], fresh=False)
+            wanted = k == newest or age[k] is None or age[k] >= self.cfg.max_age
+            m = self._build(k, poses[k]) if wanted and budget > 0 else None
+            budget -= m is not None
+            if m is None and cached[k] is not None:
+                m = cached[k][0]
             if m is None:
                 continue
             fs = m.factors()
-            out += fs
+            out += [(k, kind, f) for kind, f in fs.items()]
             self.factors_added += len(fs)
             self.pixels_total += len(m) * (len(fs) > 0)
         return out
@@ -143,7 +147,7 @@ class GCGRSource:
         graph = gtsam.NonlinearFactorGraph()
         graph.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(T_wc), gtsam.noiseModel.Diagonal.Sigmas(
             np.array([s_rot] * 3 + [s_trans] * 3))))
-        for f in fs:
+        for f in fs.values():
             graph.add(f)
         values = gtsam.Values()
         values.insert(X(0), gtsam.Pose3(T_wc))

@@ -59,7 +59,12 @@ class LocalGraph:
     feats: dict  # keyframe id -> Features
     planes_w: dict  # plane id -> world coefficients [4]
     n_plane_obs: int
-    n_gcgr: int  # GCGR factors (two per keyframe that has them)
+    gcgr_labels: dict[int, tuple[int, str]]  # graph index -> (keyframe, kind) of each GCGR factor
+
+    @property
+    def n_gcgr(self) -> int:
+        """GCGR factors in the graph (a depth and a normal one per keyframe that has them)."""
+        return len(self.gcgr_labels)
 
 
 def local_graph(smap: SlamMap, kf_id: int, camera: Camera, tcfg: TrackingConfig, bcfg: BackendConfig,
@@ -123,11 +128,11 @@ def local_graph(smap: SlamMap, kf_id: int, camera: Camera, tcfg: TrackingConfig,
         values.insert(P(pid), gtsam.OrientedPlane3(*pw))
     for k, pid, z in plane_obs:
         graph.add(plane_factor(k, pid, z, bcfg.plane_sigmas))
-    n_gcgr = 0
+    gcgr_labels = {}
     if gcgr is not None:  # before the observations: the outlier pass below keeps the graph's head as it is
-        for f in gcgr.window_factors({k: poses[k] for k in window if k not in fixed}):
+        for k, kind, f in gcgr.window_factors({k: poses[k] for k in window if k not in fixed}):
+            gcgr_labels[graph.size()] = (k, kind)
             graph.add(f)
-            n_gcgr += 1
     sigmas, factors = [], []
     for k, lm, kp in obs:
         f = feats[k]
@@ -138,7 +143,7 @@ def local_graph(smap: SlamMap, kf_id: int, camera: Camera, tcfg: TrackingConfig,
         factors.append(factor)
         sigmas.append(sigma)
     return LocalGraph(graph, values, window, fixed, lms, obs, factors, sigmas, feats, planes_w, len(plane_obs),
-                      n_gcgr)
+                      gcgr_labels)
 
 
 def local_bundle_adjustment(smap: SlamMap, kf_id: int, camera: Camera, tcfg: TrackingConfig,
