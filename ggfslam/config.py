@@ -449,11 +449,17 @@ class GCGRConfig(_Section):
     """A factor re-renders when the optimizer moves its pose more than this (degrees) from where it rendered..."""
     relinearize_translation: float = 0.01
     """... or more than this (m); below, errors come from the first-order model of the last render."""
+    harvest_every: int = 25
+    """Every this many map steps on a keyframe, the mapper's training render of it (made anyway) becomes the
+    keyframe's GCGR model, at no render cost; the first such steps after its first step are skipped (its new
+    anchors only echo its own depth then). 0 = GCGR makes every view with its own renders. Only at the
+    training resolution (``width: 0``)."""
     max_age: int = 500
-    """A keyframe's cached render is redone when the map trained this many steps since it was made ..."""
+    """A keyframe's model is rendered again when the map trained this many steps since its view was made ..."""
     renders_per_ba: int = 1
-    """... but one local BA renders at most this many keyframes (the new one first): a render of the map costs
-    ~60-80 ms on 2 CPU cores, and BA runs inside tracking in sequential mode."""
+    """... but one local BA makes at most this many renders of its own (the new keyframe first, which training
+    has not seen yet): a render costs 60-150 ms on 2 CPU cores, and BA runs inside tracking in sequential mode.
+    0 = only training renders (the new keyframe gets its factors from its next BA on)."""
     per_frame: Literal["auto", "on", "off"] = "auto"
     """Refine every tracked frame's pose with its GCGR factors: auto = on with the GPU (gsplat) renderer only."""
     per_frame_sigmas: tuple[float, float] = (0.01, 0.01)
@@ -473,8 +479,8 @@ class GCGRConfig(_Section):
                      "relinearize_translation"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0")
-        if self.max_age < 1 or self.renders_per_ba < 1:
-            raise ValueError("max_age and renders_per_ba must be >= 1")
+        if self.max_age < 1 or self.renders_per_ba < 0 or self.harvest_every < 0:
+            raise ValueError("max_age must be >= 1, renders_per_ba and harvest_every >= 0")
         if min(self.per_frame_sigmas) <= 0:
             raise ValueError("per_frame_sigmas must be > 0")
         return self

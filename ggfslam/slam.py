@@ -92,7 +92,9 @@ def attach_gcgr(config: Config, tracker, mapper, camera) -> None:
 
     per_frame = config.gcgr.per_frame == "on" or (
         config.gcgr.per_frame == "auto" and select_backend(config.render.backend) == "gsplat")
-    tracker.backend.attach_gcgr(GCGRSource(mapper, camera, config.gcgr, per_frame))
+    source = GCGRSource(mapper, camera, config.gcgr, per_frame)
+    tracker.backend.attach_gcgr(source)
+    mapper.view_sink = source  # training renders become GCGR models (gcgr.harvest_every)
 
 
 def _keyframe_landmarks(tracker, kf_id: int) -> np.ndarray:

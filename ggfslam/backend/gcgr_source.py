@@ -1,10 +1,17 @@
 """GCGR in the SLAM system: each keyframe's GCGR factors (``factors/gcgr.py``) built from the Gaussian map.
 
-Local bundle adjustment asks ``window_factors`` for the keyframes it optimizes. The source renders the
-mapper at the factors' resolution (``gcgr.width``, by default the training resolution), keeps each new keyframe's sensor depth (older keyframes fall
-back to the mapper's keyframe store), and caches one ``GCGRModel`` per keyframe: a model re-renders by itself when
-the optimizer moves its pose past the relinearization threshold, and is rebuilt when the map has trained
-``gcgr.max_age`` steps since its render. ``refine_frame`` is the per-frame GCGR pose refinement of tracked frames.
+Local bundle adjustment asks ``window_factors`` for the keyframes it optimizes. The source keeps each new
+keyframe's sensor depth at the factors' resolution (``gcgr.width``, by default the training resolution; older
+keyframes fall back to the mapper's keyframe store) and caches one ``GCGRModel`` per keyframe, from two sources:
+- the mapper's training renders (the source is the mapper's ``view_sink``): every ``gcgr.harvest_every`` steps on a
+  keyframe, the render the step made anyway becomes the keyframe's model, at no render cost. The first
+  ``harvest_every`` steps after a keyframe's first step are skipped: its newly seeded anchors only echo its own
+  depth then;
+- its own renders, at most ``gcgr.renders_per_ba`` per local BA (the newest keyframe first, then keyframes whose
+  model is missing or older than ``gcgr.max_age`` steps). In sequential mode BA runs inside tracking, so these are
+  what GCGR costs the tracking rate.
+A model re-renders by itself when the optimizer moves its pose past the relinearization threshold.
+``refine_frame`` is the per-frame GCGR pose refinement of tracked frames.
 The refined keyframe poses reach the mapper and the frontend through the SLAM map, like every BA result.
 """
 from __future__ import annotations
@@ -15,11 +22,13 @@ from collections import OrderedDict
 
 import gtsam
 import numpy as np
+import torch
 from gtsam.symbol_shorthand import X
 
 from factors.gcgr import GCGRModel, MapView, SensorView
 from ggfslam.backend.local_ba import _optimize
 from ggfslam.config import GCGRConfig
+from ggfslam.errors import ConfigError
 from ggfslam.mapping.keyframe_store import resize_depth, scaled_intrinsics
 
 CACHE = 48  # keyframes whose sensor views and models are kept (a few BA windows)
@@ -31,10 +40,17 @@ class GCGRSource:
     def __init__(self, mapper, camera, cfg: GCGRConfig, per_frame: bool = False):
         self.mapper, self.cfg, self.per_frame = mapper, cfg, per_frame
         self.intr = mapper.intr if cfg.width == 0 else scaled_intrinsics(camera, cfg.width)
+        # training renders serve only at the training resolution
+        self.harvest = cfg.harvest_every > 0 and self.intr == mapper.intr
+        if not self.harvest and cfg.renders_per_ba == 0 and not per_frame:
+            raise ConfigError("gcgr.renders_per_ba is 0 and the training renders cannot serve (gcgr.harvest_every is 0 "
+                              "or gcgr.width differs from mapping.train_width): GCGR would have no view of the map")
+        self._first_step: dict[int, int] = {}  # keyframe -> map iteration of its first training step
         self._sensors: OrderedDict[int, SensorView] = OrderedDict()
         self._models: OrderedDict[int, tuple[GCGRModel, int]] = OrderedDict()  # id -> (model, map iteration)
         self._lock = threading.Lock()  # tracking adds keyframes while the backend thread builds factors
         self.models_built = 0
+        self.models_harvested = 0
         self.factors_added = 0
         self.pixels_total = 0
         self.renders = 0
@@ -78,13 +94,15 @@ class GCGRSource:
         with self._lock:
             return self._models.get(kf_id)
 
-    def _build(self, kf_id: int, T_wc: np.ndarray) -> GCGRModel | None:
-        """A new model of the keyframe rendered at T_wc [4, 4], replacing its cached one; None without sensor depth."""
+    def _build(self, kf_id: int, T_wc: np.ndarray, view: MapView | None = None, iteration: int | None = None
+               ) -> GCGRModel | None:
+        """A new model of the keyframe from ``view`` (made at T_wc [4, 4] before map step ``iteration``), or from a
+        render at T_wc; it replaces the cached one. None without sensor depth."""
         sensor = self.sensor(kf_id)
         if sensor is None:
             return None
-        it = self.mapper.iteration
-        m = GCGRModel(kf_id, self.render, sensor, T_wc, self.cfg)
+        it = self.mapper.iteration if iteration is None else iteration
+        m = GCGRModel(kf_id, self.render, sensor, T_wc, self.cfg, view=view)
         self.models_built += 1
         with self._lock:
             self._models[kf_id] = (m, it)
@@ -92,6 +110,24 @@ class GCGRSource:
             while len(self._models) > CACHE:
                 self._models.popitem(last=False)
         return m
+
+    # --- the mapper's view sink ---------------------------------------------------------------------
+    def wants(self, kf_id: int, iteration: int) -> bool:
+        """Whether the mapper's training step ``iteration`` on ``kf_id`` should hand its render over."""
+        if not self.harvest:
+            return False
+        with self._lock:
+            first = self._first_step.setdefault(kf_id, iteration)
+            cached = self._models.get(kf_id)
+        if iteration - first < self.cfg.harvest_every:
+            return False
+        return cached is None or iteration - cached[1] >= self.cfg.harvest_every
+
+    @torch.no_grad()
+    def offer(self, kf_id: int, T_wc: np.ndarray, iteration: int, out) -> None:
+        """A training render of ``kf_id`` at T_wc [4, 4] (``RenderOutput``) becomes the keyframe's model."""
+        if self._build(kf_id, T_wc, MapView.from_render(out), iteration) is not None:
+            self.models_harvested += 1
 
     def model(self, kf_id: int, T_wc: np.ndarray) -> GCGRModel | None:
         """The keyframe's GCGR model at pose T_wc: the cached one while its render is younger than
@@ -161,7 +197,7 @@ class GCGRSource:
 
     def summary(self) -> dict:
         """GCGR figures for metrics.json (``backend.gcgr``)."""
-        return {"models": self.models_built, "factors": self.factors_added,
+        return {"models": self.models_built, "models_from_training": self.models_harvested, "factors": self.factors_added,
                 "pixels_mean": self.pixels_total / max(self.factors_added // 2, 1),
                 "renders": self.renders, "render_ms_mean": 1000 * self.render_seconds / max(self.renders, 1),
                 "frames_refined": self.frames_refined,

@@ -14,6 +14,9 @@
   turns the children of planar anchors into surfels (training, rendering and export alike), AOF trains the
   field's residual net after the Gaussians' step, and ``render`` carries P_2D as the planar-weight channel
   (``RenderOutput.extras[..., 0]``).
+- A ``view_sink`` (GCGR's ``GCGRSource``) may take the renders of training steps: on the steps it asks for, the
+  render also carries the (detached) planar-weight channel and is handed over after the step, so GCGR reads the
+  map at a keyframe without rendering it again.
 Every public method takes ``self.lock``, so a worker thread can train while another thread renders or saves.
 """
 from __future__ import annotations
@@ -21,7 +24,7 @@ from __future__ import annotations
 import threading
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Protocol
 
 import cv2
 import numpy as np
@@ -42,6 +45,16 @@ from ggfslam.render.api import rasterize
 from ggfslam.render.types import Intrinsics, RenderOutput, RenderSettings
 
 PoseSource = Callable[[], dict[int, np.ndarray]]  # keyframe id -> T_wc [4, 4]
+
+
+class ViewSink(Protocol):
+    """Takes training renders of keyframes (see the module docstring)."""
+
+    def wants(self, kf_id: int, iteration: int) -> bool:
+        """Whether the step ``iteration`` on keyframe ``kf_id`` should hand its render over."""
+
+    def offer(self, kf_id: int, T_wc: np.ndarray, iteration: int, out: RenderOutput) -> None:
+        """The render ``out`` of keyframe ``kf_id`` at T_wc [4, 4], made before step ``iteration``."""
 
 
 class Mapper:
@@ -67,6 +80,7 @@ class Mapper:
         self.train_seconds = 0.0
         self.grown = self.pruned = 0
         self.last_losses: dict[str, float] = {}
+        self.view_sink: ViewSink | None = None  # not part of the map's state (checkpoints)
         self.lock = threading.RLock()
 
     def _make_optimizer(self) -> torch.optim.Adam:
@@ -255,9 +269,13 @@ class Mapper:
             g, mask = self._decode(T_wc, self.intr)
             if len(g) == 0:
                 return {}
-            g, l_morph, _ = self._field(g, channel=False)  # the planar-weight channel is for renders, not training
+            # the planar-weight channel is for renders (and a view sink), not for the loss
+            sink = self.view_sink if self.view_sink is not None and self.view_sink.wants(kf_id, self.iteration) \
+                else None
+            g, l_morph, p2d = self._field(g, channel=sink is not None)
             out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, self.intr,
-                            torch.from_numpy(invert(T_wc)).float(), settings=self.settings)
+                            torch.from_numpy(invert(T_wc)).float(), settings=self.settings,
+                            extras=None if p2d is None else p2d.detach())
             color = self._expose(out.color, kf_id)
             gt_rgb = torch.from_numpy(item.rgb)
             gt_depth = torch.from_numpy(item.depth)
@@ -277,6 +295,8 @@ class Mapper:
             self.density.accumulate(g, out.visible, out.means2d_grad(), mask, (self.intr.width, self.intr.height))
             self.opt.step()
             self.opt.zero_grad(set_to_none=True)
+            if sink is not None:
+                sink.offer(kf_id, T_wc.copy(), self.iteration, out)
             self.iteration += 1
             if self.ggf is not None and self.ggf_cfg.aof and self.iteration % self.ggf_cfg.aof_every == 0:
                 self.ggf.feedback(g)
