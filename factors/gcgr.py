@@ -30,8 +30,9 @@ is the default. (The renderer's reverse-mode pose gradient gives J^T r, one back
 
 GTSAM evaluates ``error()`` at every trial step, so a factor never renders per call: it keeps the rows and
 Jacobian of its last render (the linearization point) and returns the first-order model
-``r0 + J Log(T0^-1 T)``; only when the optimizer moves the pose past ``relinearize_rotation`` /
-``relinearize_translation`` does it render again there (both factors of a keyframe share that render).
+``r0 + J Log(T0^-1 T)``; only when the optimizer linearizes at a pose past ``relinearize_rotation`` /
+``relinearize_translation`` does it render again there (both factors of a keyframe share that render): trial
+steps, which Levenberg-Marquardt often rejects, never render.
 """
 from __future__ import annotations
 
@@ -216,10 +217,11 @@ class GCGRModel:
         return J["depth"], J["normal"]
 
     def evaluate(self, kind: str, pose: gtsam.Pose3, H: list | None = None) -> np.ndarray:
-        """Rows [N] of ``kind`` at ``pose`` from the first-order model (re-rendering past the threshold); fills
-        ``H[0]`` with the Jacobian [N, 6] when asked."""
+        """Rows [N] of ``kind`` at ``pose`` from the first-order model; fills ``H[0]`` with the Jacobian [N, 6]
+        when asked, and then (a linearization, at a point the optimizer accepted) renders again first if the
+        pose is past the threshold. Error-only calls (trial steps, often rejected) never render."""
         xi = self.T0.localCoordinates(pose)
-        if moved_past(xi, self.cfg):
+        if H is not None and moved_past(xi, self.cfg):
             self._linearize(pose.matrix())
             xi = np.zeros(6)
         J = self.jacobians[kind]

@@ -6,6 +6,8 @@ features, but three non-parallel planes that fix all six degrees of freedom of a
 """
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import cv2
 import gtsam
 import numpy as np
@@ -169,9 +171,13 @@ def test_first_order_model_between_renders_and_relinearization(scene):
     assert np.abs(rows - exact).mean() < 0.05 * np.abs(exact - model.rows0["depth"]).mean() + 1e-4
     far = gtsam.Pose3(_start()).retract(np.array([0.0, 0.0, 0.0, 0.0, 0.02, 0.0]))  # 2 cm: past the threshold
     n1 = model.renders
-    rows = model.evaluate("depth", far)
+    rows = model.evaluate("depth", far)  # error() there: still the first-order model
+    assert model.renders == n1 and not model.T0.equals(far, 1e-12)
+    H = [None]
+    rows = model.evaluate("depth", far, H)  # a linearization there renders again
     assert model.renders == n1 + 1 and model.T0.equals(far, 1e-12)
     np.testing.assert_allclose(rows, model.rendered_rows(far.matrix())["depth"])
+    np.testing.assert_array_equal(H[0], model.jacobians["depth"])
 
 
 def test_pixel_selection_gates_and_budget():
@@ -198,6 +204,38 @@ def test_pixel_selection_gates_and_budget():
     rd, _, _ = residual_rows(view, sensor, np.array([6 * W + 20]))
     assert rd[0] == pytest.approx(DEPTH_WEIGHT * 0.02) and NORMAL_WEIGHT == 0.05
     assert not locally_flat(sensor.normals, 0.99)[0].any()  # the border has no neighbours
+
+
+class _SceneMapper:
+    """What ``GCGRSource`` reads of a ``Mapper``, over the corner scene."""
+
+    def __init__(self, render_out):
+        self.intr, self.iteration, self.store = INTR, 0, {}
+        self.map = SimpleNamespace(n_anchors=1)
+        self.render = lambda T_wc, intr: render_out(T_wc)
+
+
+def test_training_renders_become_models_without_renders_of_their_own(scene):
+    from ggfslam.backend.gcgr_source import GCGRSource
+
+    _, render_out, sensor, truth = scene
+    mapper = _SceneMapper(render_out)
+    src = GCGRSource(mapper, None, GCGRConfig(harvest_every=10, renders_per_ba=0))
+    for k in (1, 2):
+        src.add_keyframe(k, sensor.depth)
+    # the first harvest_every steps after a keyframe's first step are skipped (its new anchors echo its depth)
+    assert not src.wants(1, 5) and not src.wants(1, 14) and src.wants(1, 15)
+    src.offer(1, truth, 15, render_out(truth))
+    assert not src.wants(1, 24) and src.wants(1, 25)
+    mapper.iteration = 30
+    labels = [(k, kind) for k, kind, _ in src.window_factors({1: truth, 2: _start()})]
+    assert labels == [(1, "depth"), (1, "normal")] and src.renders == 0  # keyframe 2 has no view yet
+    # one render per BA: the keyframe without a view gets its own; keyframe 1's training view is reused
+    src.cfg = GCGRConfig(harvest_every=10, renders_per_ba=1)
+    labels = [(k, kind) for k, kind, _ in src.window_factors({1: truth, 2: _start()})]
+    assert sorted(labels) == [(1, "depth"), (1, "normal"), (2, "depth"), (2, "normal")] and src.renders == 1
+    with pytest.raises(ConfigError, match="renders_per_ba"):
+        GCGRSource(mapper, None, GCGRConfig(harvest_every=0, renders_per_ba=0))
 
 
 def test_config_needs_the_map():

@@ -143,9 +143,9 @@ class GCGRSource:
         """(keyframe, kind, factor) of the GCGR factors of the keyframes in ``poses`` (id -> T_wc [4, 4]) for one
         local BA.
 
-        At most ``gcgr.renders_per_ba`` new renders: the newest keyframe first, then the keyframes without a
-        render, then those whose render is older than ``gcgr.max_age``, stalest first; the others use their
-        cached render (however old) or get no factor this time."""
+        At most ``gcgr.renders_per_ba`` new renders for keyframes without a model (the newest first) or whose
+        model is older than ``gcgr.max_age`` steps (stalest first); the others use their cached model (however
+        old) or get no factor this time."""
         if not self.ready():
             return []
         it = self.mapper.iteration
@@ -156,7 +156,7 @@ class GCGRSource:
         budget = self.cfg.renders_per_ba
         out = []
         for k in order:
-            wanted = k == newest or age[k] is None or age[k] >= self.cfg.max_age
+            wanted = age[k] is None or age[k] >= self.cfg.max_age
             m = self._build(k, poses[k]) if wanted and budget > 0 else None
             budget -= m is not None
             if m is None and cached[k] is not None:
