@@ -449,6 +449,10 @@ class GCGRConfig(_Section):
     """A factor re-renders when the optimizer moves its pose more than this (degrees) from where it rendered..."""
     relinearize_translation: float = 0.01
     """... or more than this (m); below, errors come from the first-order model of the last render."""
+    exclude_own_anchors: bool = False
+    """Render a keyframe's view without the anchors its own depth seeded (and their offspring), so its factors
+    compare it with what the other keyframes mapped; otherwise, where only it saw the surface, the map echoes its
+    depth and the factor holds it where it is. Training renders cannot serve then (``harvest_every`` unused)."""
     harvest_every: int = 25
     """Every this many map steps on a keyframe, the mapper's training render of it (made anyway) becomes the
     keyframe's GCGR model, at no render cost; the first such steps after its first step are skipped (its new

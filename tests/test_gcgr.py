@@ -212,7 +212,11 @@ class _SceneMapper:
     def __init__(self, render_out):
         self.intr, self.iteration, self.store = INTR, 0, {}
         self.map = SimpleNamespace(n_anchors=1)
-        self.render = lambda T_wc, intr: render_out(T_wc)
+        self.render_out, self.left_out = render_out, []
+
+    def render(self, T_wc, intr, without_kf=None):
+        self.left_out.append(without_kf)
+        return self.render_out(T_wc)
 
 
 def test_training_renders_become_models_without_renders_of_their_own(scene):
@@ -236,6 +240,12 @@ def test_training_renders_become_models_without_renders_of_their_own(scene):
     assert sorted(labels) == [(1, "depth"), (1, "normal"), (2, "depth"), (2, "normal")] and src.renders == 1
     with pytest.raises(ConfigError, match="renders_per_ba"):
         GCGRSource(mapper, None, GCGRConfig(harvest_every=0, renders_per_ba=0))
+    # a keyframe's view without its own anchors: training renders (which have them) cannot serve
+    src = GCGRSource(mapper, None, GCGRConfig(harvest_every=10, exclude_own_anchors=True))
+    src.add_keyframe(3, sensor.depth)
+    assert not src.wants(3, 100)
+    mapper.left_out.clear()
+    assert len(src.window_factors({3: truth})) == 2 and mapper.left_out == [3]
 
 
 def test_config_needs_the_map():

@@ -78,6 +78,20 @@ def test_backend_pose_corrections_move_the_keyframes_anchors(sequence):
     assert m.sync_poses() == 1
 
 
+def test_render_without_the_anchors_a_keyframe_seeded(sequence):
+    ds, gt = sequence, sequence.gt_poses
+    poses = {0: gt[0].copy(), 1: gt[12].copy()}
+    m = _mapper(ds, poses)
+    for kf, fi in enumerate((0, 12)):
+        f = ds[fi]
+        m.add_keyframe(kf, fi, f.rgb, f.depth)
+    full = m.render(poses[1]).alpha  # [H, W]
+    torch.testing.assert_close(m.render(poses[1], without_kf=7).alpha, full)  # keyframe 7 seeded nothing
+    for kf in (0, 1):
+        part = m.render(poses[1], without_kf=kf).alpha
+        assert (part <= full + 1e-5).all() and part.sum() < 0.99 * full.sum()
+
+
 def test_keyframe_store_is_bounded_and_reads_back_from_disk(tmp_path):
     cam = Camera(100.0, 100.0, 31.5, 23.5, 64, 48)
     intr = scaled_intrinsics(cam, 32)

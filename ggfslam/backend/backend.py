@@ -98,6 +98,10 @@ class Backend:
             self._process(kf.id)
 
     def _worker(self) -> None:
+        import numba
+
+        # GCGR renders here: one numba thread, so tracking keeps a core (numba's thread budget is per thread)
+        numba.set_num_threads(1)
         while True:
             kf_id = self._queue.get()
             try:

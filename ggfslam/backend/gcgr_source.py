@@ -41,10 +41,11 @@ class GCGRSource:
         self.mapper, self.cfg, self.per_frame = mapper, cfg, per_frame
         self.intr = mapper.intr if cfg.width == 0 else scaled_intrinsics(camera, cfg.width)
         # training renders serve only at the training resolution
-        self.harvest = cfg.harvest_every > 0 and self.intr == mapper.intr
+        self.harvest = cfg.harvest_every > 0 and self.intr == mapper.intr and not cfg.exclude_own_anchors
         if not self.harvest and cfg.renders_per_ba == 0 and not per_frame:
-            raise ConfigError("gcgr.renders_per_ba is 0 and the training renders cannot serve (gcgr.harvest_every is 0 "
-                              "or gcgr.width differs from mapping.train_width): GCGR would have no view of the map")
+            raise ConfigError("gcgr.renders_per_ba is 0 and the training renders cannot serve (gcgr.harvest_every is 0, "
+                              "gcgr.width differs from mapping.train_width, or gcgr.exclude_own_anchors is true): GCGR "
+                              "would have no view of the map")
         self._first_step: dict[int, int] = {}  # keyframe -> map iteration of its first training step
         self._sensors: OrderedDict[int, SensorView] = OrderedDict()
         self._models: OrderedDict[int, tuple[GCGRModel, int]] = OrderedDict()  # id -> (model, map iteration)
@@ -80,10 +81,12 @@ class GCGRSource:
         """Whether the map has been trained at all (an empty map says nothing about poses)."""
         return self.mapper.map.n_anchors > 0 and self.mapper.iteration > 0
 
-    def render(self, T_wc: np.ndarray) -> MapView:
-        """The map rendered at T_wc [4, 4] at the factors' resolution."""
+    def render(self, T_wc: np.ndarray, kf_id: int | None = None) -> MapView:
+        """The map rendered at T_wc [4, 4] at the factors' resolution for keyframe ``kf_id`` (without the anchors
+        it seeded when ``gcgr.exclude_own_anchors``)."""
         t0 = time.perf_counter()
-        view = MapView.from_render(self.mapper.render(T_wc, self.intr))
+        without = kf_id if self.cfg.exclude_own_anchors else None
+        view = MapView.from_render(self.mapper.render(T_wc, self.intr, without_kf=without))
         self.renders += 1
         self.render_seconds += time.perf_counter() - t0
         return view
@@ -102,7 +105,7 @@ class GCGRSource:
         if sensor is None:
             return None
         it = self.mapper.iteration if iteration is None else iteration
-        m = GCGRModel(kf_id, self.render, sensor, T_wc, self.cfg, view=view)
+        m = GCGRModel(kf_id, lambda T: self.render(T, kf_id), sensor, T_wc, self.cfg, view=view)
         self.models_built += 1
         with self._lock:
             self._models[kf_id] = (m, it)

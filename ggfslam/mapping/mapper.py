@@ -234,8 +234,11 @@ class Mapper:
                 kf = int(ids[self.rng.integers(len(ids))])
             self.step(kf)
 
-    def _decode(self, T_wc: np.ndarray, intr: Intrinsics) -> tuple[DecodedGaussians, torch.Tensor]:
+    def _decode(self, T_wc: np.ndarray, intr: Intrinsics, without_kf: int | None = None
+                ) -> tuple[DecodedGaussians, torch.Tensor]:
         mask = self.map.visible_anchors(invert(T_wc), intr, self.settings.near_plane)
+        if without_kf is not None:
+            mask &= self.map.source_kf != without_kf
         return self.map.decode(T_wc[:3, 3], mask), mask
 
     def _refresh_field(self) -> None:
@@ -317,11 +320,13 @@ class Mapper:
 
     # --- rendering -----------------------------------------------------------------------------------
     @torch.no_grad()
-    def render(self, T_wc: np.ndarray, intr: Intrinsics | None = None, exposure_kf: int | None = None) -> RenderOutput:
-        """Render the map from camera-to-world T_wc [4, 4] (training intrinsics by default)."""
+    def render(self, T_wc: np.ndarray, intr: Intrinsics | None = None, exposure_kf: int | None = None,
+               without_kf: int | None = None) -> RenderOutput:
+        """Render the map from camera-to-world T_wc [4, 4] (training intrinsics by default); ``without_kf``
+        leaves out the anchors that keyframe seeded."""
         intr = intr or self.intr
         with self.lock:
-            g, _ = self._decode(T_wc, intr)
+            g, _ = self._decode(T_wc, intr, without_kf)
             g, _, p2d = self._field(g)
             out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, intr,
                             torch.from_numpy(invert(T_wc)).float(), extras=p2d, settings=self.settings)
