@@ -189,7 +189,8 @@ def bench(
 
     names = [v.strip() for v in variants.split(",") if v.strip()]
     rows = ablation(configs, out, names, set_)
-    console.print(format_table(rows))
+    # piped into a log, rich would squeeze the table into 80 columns and cut the sequence names
+    (console if console.is_terminal else Console(width=150)).print(format_table(rows))
     console.print(f"runs and ablation.json in {out}")
 
 
