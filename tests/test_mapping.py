@@ -53,13 +53,19 @@ def test_psnr_and_depth_improve_while_mapping(sequence):
     assert st["iterations"] == 120 and st["keyframes"] == 3 and st["gaussians"] > st["anchors"]
 
 
-def test_backend_pose_corrections_move_the_keyframes_anchors(sequence):
-    ds, gt = sequence, sequence.gt_poses
+def _two_keyframes(ds) -> tuple[Mapper, dict]:
+    """A mapper seeded (not trained) with frames 0 and 12 as keyframes 0 and 1 at their true poses."""
+    gt = ds.gt_poses
     poses = {0: gt[0].copy(), 1: gt[12].copy()}
     m = _mapper(ds, poses)
     for kf, fi in enumerate((0, 12)):
         f = ds[fi]
         m.add_keyframe(kf, fi, f.rgb, f.depth)
+    return m, poses
+
+
+def test_backend_pose_corrections_move_the_keyframes_anchors(sequence):
+    m, poses = _two_keyframes(sequence)
     own0 = m.map.source_kf == 0
     a0 = m.map.anchors.clone()
     D = np.eye(4)
@@ -79,12 +85,7 @@ def test_backend_pose_corrections_move_the_keyframes_anchors(sequence):
 
 
 def test_render_without_the_anchors_a_keyframe_seeded(sequence):
-    ds, gt = sequence, sequence.gt_poses
-    poses = {0: gt[0].copy(), 1: gt[12].copy()}
-    m = _mapper(ds, poses)
-    for kf, fi in enumerate((0, 12)):
-        f = ds[fi]
-        m.add_keyframe(kf, fi, f.rgb, f.depth)
+    m, poses = _two_keyframes(sequence)
     full = m.render(poses[1]).alpha  # [H, W]
     torch.testing.assert_close(m.render(poses[1], without_kf=7).alpha, full)  # keyframe 7 seeded nothing
     for kf in (0, 1):
