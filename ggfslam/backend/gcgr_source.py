@@ -10,7 +10,7 @@ keyframes fall back to the mapper's keyframe store) and caches one ``GCGRModel``
 - its own renders, at most ``gcgr.renders_per_ba`` per local BA (the newest keyframe first, then keyframes whose
   model is missing or older than ``gcgr.max_age`` steps). In sequential mode BA runs inside tracking, so these are
   what GCGR costs the tracking rate.
-A model re-renders by itself when the optimizer moves its pose past the relinearization threshold.
+A model re-renders by itself when the optimizer linearizes it past the relinearization threshold.
 ``refine_frame`` is the per-frame GCGR pose refinement of tracked frames.
 The refined keyframe poses reach the mapper and the frontend through the SLAM map, like every BA result.
 """
