@@ -446,9 +446,11 @@ class GCGRConfig(_Section):
     step: float = 0.001
     """Step (rad, m) of the central differences."""
     relinearize_rotation: float = 1.0
-    """A factor re-renders when the optimizer moves its pose more than this (degrees) from where it rendered..."""
+    """A factor re-renders when the optimizer linearizes it at a pose more than this (degrees) from where it
+    rendered ..."""
     relinearize_translation: float = 0.01
-    """... or more than this (m); below, errors come from the first-order model of the last render."""
+    """... or more than this (m); elsewhere (and at every trial step) errors come from the first-order model of
+    the last render."""
     exclude_own_anchors: bool = False
     """Render a keyframe's view without the anchors its own depth seeded (and their offspring), so its factors
     compare it with what the other keyframes mapped; otherwise, where only it saw the surface, the map echoes its
