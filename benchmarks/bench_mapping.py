@@ -90,7 +90,7 @@ def throughput(width: int, target: int, spacing: int, steps: int = 60, overrides
                 break
     visible = []
     for k in range(min(kf, 8)):
-        g, _ = m._decode(poses[k], m.intr)
+        g, _ = m._decode_view(poses[k], m.intr)
         visible.append(len(g))
     before = m.n_gaussians()
     t0 = time.perf_counter()

@@ -122,11 +122,13 @@ def render(
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Output folder (default RUN_DIR/renders)."),
     width: Optional[int] = typer.Option(None, help="Render width (default: the training width)."),
     overwrite: bool = typer.Option(False, help="Replace PNGs of an earlier render in the output folder."),
+    ply: bool = typer.Option(False, "--ply", help="Render the baked gaussians.ply (what standard viewers show) instead "
+                             "of the neural map (default output folder RUN_DIR/renders_ply)."),
 ):
     """Render frames of a run, or a new camera path, to PNGs (colour, 16-bit depth in mm)."""
     from ggfslam.render_run import render_run
 
-    written = render_run(run_dir, frames=frames, path=path, out=out, width=width, overwrite=overwrite)
+    written = render_run(run_dir, frames=frames, path=path, out=out, width=width, overwrite=overwrite, ply=ply)
     console.print(f"wrote {written['count']} views to {written['folder']}")
 
 

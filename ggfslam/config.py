@@ -252,16 +252,31 @@ class MappingConfig(_Section):
     """Length of each anchor's feature."""
     hidden: int = 32
     """Hidden width of the opacity, colour and covariance MLPs."""
-    view_dependent: bool = True
-    """Feed the viewing direction and distance to the decoders."""
+    sh_degree: int = 1
+    """View-dependent colour as real spherical harmonics of this degree (0-3), decoded per child from the anchor's
+    feature: gaussians.ply carries them, so standard viewers show the map as ggfslam renders it."""
+    view_dependent: bool = False
+    """Scaffold-GS's decoders instead: opacity, shape and colour MLPs all read the viewing direction and distance
+    (sh_degree is then usually 0). gaussians.ply can only approximate such a map (each anchor decoded from its
+    nearest observing keyframe, colours fitted as degree-1 SH)."""
     depth_stride: int = 2
     """Back-project every n-th pixel (training resolution) of a keyframe's depth to seed anchors."""
     max_anchors: int = 200000
     """Upper bound on the number of anchors (growing stops there)."""
-    train_width: int = 320
-    """Training images are downscaled to this width (aspect kept; never upscaled)."""
+    train_width: int | None = None
+    """Training images are downscaled to this width (aspect kept; never upscaled); None = the sequence's own."""
+    coarse_fraction: float = 0.0
+    """Share of the steps that train whole images at half the training size (coarse-to-fine; only where that half
+    is at least ``coarse_min_width`` wide)."""
+    coarse_min_width: int = 200
+    """Narrowest half-size image worth a coarse step."""
+    crop: float = 1.0
+    """Steps at the training size train a random crop of this fraction of the width and height (1 = whole)."""
     iterations_per_keyframe: int = 100
-    """Optimization steps after each new keyframe."""
+    """Optimization steps after each new keyframe, at least (see ``iterations_per_frame``)."""
+    iterations_per_frame: float = 0.0
+    """Steps per input frame: a new keyframe gets this many per frame since the keyframe before it, when that is
+    more than ``iterations_per_keyframe`` (a budget that follows the sequence, not its keyframe count)."""
     window: int = 8
     """Keyframes trained after a new one: the new one (every other step) plus a random sample of older ones."""
     final_iterations: int = 300
@@ -309,11 +324,11 @@ class MappingConfig(_Section):
     checkpoint_every: int = 10
     """Write a resumable checkpoint every n keyframes (0 = only at the end)."""
     eval_width: int | None = None
-    """Width of the evaluation renders (every frame); None = the training width."""
+    """Width of the evaluation renders (every frame); None = the sequence's own resolution."""
     eval_stride: int = 1
     """Evaluate every n-th frame of the sequence (1 = all frames)."""
     mesh: bool = True
-    """Fuse the rendered depth of the keyframes into mesh.ply (TSDF)."""
+    """Fuse the depth of the baked Gaussians (gaussians.ply) rendered at the keyframes into mesh.ply (TSDF)."""
     mesh_voxel: float = 0.02
     """TSDF voxel size (m) of mesh.ply."""
 
@@ -322,16 +337,26 @@ class MappingConfig(_Section):
         for name in ("voxel_size", "mesh_voxel"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0")
-        for name in ("n_offsets", "feature_dim", "hidden", "depth_stride", "max_anchors", "train_width", "window",
-                     "threads", "eval_stride", "density_min_visits"):
+        for name in ("n_offsets", "feature_dim", "hidden", "depth_stride", "max_anchors", "window",
+                     "threads", "eval_stride", "density_min_visits", "coarse_min_width"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1")
-        for name in ("iterations_per_keyframe", "final_iterations", "densify_every", "densify_from",
+        for name in ("train_width", "eval_width"):
+            if getattr(self, name) is not None and getattr(self, name) < 16:
+                raise ValueError(f"{name} must be >= 16 pixels (or null for the sequence's own width)")
+        if not 0 <= self.coarse_fraction <= 1:
+            raise ValueError("coarse_fraction must be in [0, 1]")
+        if not 0 < self.crop <= 1:
+            raise ValueError("crop must be in (0, 1]")
+        for name in ("iterations_per_keyframe", "iterations_per_frame", "final_iterations", "densify_every",
+                     "densify_from",
                      "keyframe_cache", "checkpoint_every"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0")
         if not 0 <= self.lambda_ssim <= 1:
             raise ValueError("lambda_ssim must be in [0, 1]")
+        if not 0 <= self.sh_degree <= 3:
+            raise ValueError("sh_degree must be in 0..3")
         return self
 
 

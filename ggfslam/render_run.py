@@ -27,14 +27,54 @@ def _frame_selection(spec: str, n: int, kf_frames: list[int]) -> np.ndarray:
     return np.arange(n)[slice(*vals)]
 
 
-def render_run(run_dir: str | Path, frames: str = "keyframes", path: str | Path | None = None,
-               out: str | Path | None = None, width: int | None = None, overwrite: bool = False) -> dict:
-    """Render views of a run's map to ``out`` (default RUN_DIR/renders); returns {'count', 'folder'}."""
-    from ggfslam.mapping.keyframe_store import scaled_intrinsics
-    from ggfslam.slam import load_mapper
+def _keyframe_frames(run_dir: Path) -> list[int]:
+    """Frame indices of a run's keyframes, from tracking.txt (index timestamp state keyframe ...)."""
+    from ggfslam.rundir import TRACKING_LOG_FILE
 
-    run_dir = Path(run_dir)
-    config, mapper, ckpt = load_mapper(run_dir)
+    f = run_dir / TRACKING_LOG_FILE
+    if not f.is_file():
+        raise RunDirError(f"{run_dir}: {TRACKING_LOG_FILE} missing (the run did not finish); pass --frames or --path")
+    rows = [line.split() for line in f.read_text().splitlines() if line.strip() and not line.startswith("#")]
+    try:
+        return [int(r[0]) for r in rows if int(r[3]) == 1]
+    except (IndexError, ValueError):
+        raise RunDirError(f"{f}: expected rows 'index timestamp state keyframe ...'") from None
+
+
+def render_run(run_dir: str | Path, frames: str = "keyframes", path: str | Path | None = None,
+               out: str | Path | None = None, width: int | None = None, overwrite: bool = False,
+               ply: bool = False) -> dict:
+    """Render views of a run's map to ``out`` (default RUN_DIR/renders, or RUN_DIR/renders_ply with ``ply``);
+    returns {'count', 'folder'}. With ``ply`` the baked file gaussians.ply is rendered instead of the neural map
+    (what a standard viewer shows)."""
+    from ggfslam.config import load_config
+    from ggfslam.eval.rendering import nearest_keyframes
+    from ggfslam.mapping.keyframe_store import scaled_intrinsics
+    from ggfslam.rundir import CONFIG_FILE, GAUSSIANS_FILE, require_run_dir
+
+    run_dir = require_run_dir(run_dir)
+    config = load_config(run_dir / CONFIG_FILE)
+    camera = run_camera(run_dir)
+    intr = scaled_intrinsics(camera, width or config.mapping.train_width)
+    if ply:
+        from ggfslam.gaussians.explicit import ExplicitGaussians
+
+        if not (run_dir / GAUSSIANS_FILE).is_file():
+            raise RunDirError(f"{run_dir}: {GAUSSIANS_FILE} missing (the run did not finish, or ran without mapping)")
+        baked = ExplicitGaussians.from_ply(run_dir / GAUSSIANS_FILE)
+        kf_frames = {i: f for i, f in enumerate(_keyframe_frames(run_dir))} if path is None else {}
+
+        def render(T, _exposure_kf):
+            return baked.render(T, intr)
+    else:
+        from ggfslam.mapping.mapper import REFERENCE_EXPOSURE
+        from ggfslam.slam import load_mapper
+
+        _, mapper, ckpt = load_mapper(run_dir)
+        kf_frames = dict(ckpt["kf_frames"])
+
+        def render(T, exposure_kf):
+            return mapper.render(T, intr, exposure_kf=exposure_kf)
     if path is not None:
         _, poses = read_tum_trajectory(path)
         indices = np.arange(len(poses))
@@ -44,23 +84,22 @@ def render_run(run_dir: str | Path, frames: str = "keyframes", path: str | Path 
         if not traj.is_file():
             raise RunDirError(f"{run_dir}: {TRAJECTORY_FILE} missing (the run did not finish); pass --path")
         _, poses = read_tum_trajectory(traj)
-        indices = _frame_selection(frames, len(poses), list(ckpt["kf_frames"].values()))
+        indices = _frame_selection(frames, len(poses), list(kf_frames.values()))
         names = [f"frame_{i:06d}" for i in indices]
     if len(indices) == 0:
         raise ConfigError(f"--frames {frames!r} selects no frame of the {len(poses)} in the run")
-    folder = Path(out) if out is not None else run_dir / "renders"
+    folder = Path(out) if out is not None else run_dir / ("renders_ply" if ply else "renders")
     folder.mkdir(parents=True, exist_ok=True)
     clash = [nm for nm in names if (folder / f"{nm}_rgb.png").exists()]
     if clash and not overwrite:
         raise RunDirError(f"{folder}: {len(clash)} render(s) already there (e.g. {clash[0]}_rgb.png); pass "
                           "--overwrite or choose another --out")
-    intr = mapper.intr if width is None else scaled_intrinsics(run_camera(run_dir), width)
-    from ggfslam.eval.rendering import nearest_keyframes
-
-    exposure = nearest_keyframes(indices, ckpt["kf_frames"]) if path is None else np.full(len(indices), -1)
-    for i, nm, e in zip(indices, names, exposure):
-        res = mapper.render(poses[int(i)], intr, exposure_kf=int(e) if e >= 0 else None)
-        write_rgb(folder / f"{nm}_rgb.png", res.color.numpy())
+    # a frame takes its nearest keyframe's exposure; a new path the keyframes' typical one
+    exposure = nearest_keyframes(indices, kf_frames) if path is None or ply else None
+    for j, (i, nm) in enumerate(zip(indices, names)):
+        e = REFERENCE_EXPOSURE if exposure is None else int(exposure[j]) if exposure[j] >= 0 else None
+        res = render(poses[int(i)], e)
+        write_rgb(folder / f"{nm}_rgb.png", res.color.clamp(0, 1).numpy())
         write_depth(folder / f"{nm}_depth.png", res.depth.numpy(), 1000.0)
     return {"count": len(indices), "folder": str(folder)}
 

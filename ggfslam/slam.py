@@ -263,18 +263,23 @@ def run(config: Config, out_dir: str | Path, overwrite: bool = False, progress: 
 
 
 def _map_outputs(config: Config, mapper, tracker, dataset, poses: np.ndarray, run_dir: Path) -> dict:
-    """Write gaussians.ply (and gaussians_planarity.ply with the field) and mesh.ply, render every evaluated
-    frame; returns the mapping/rendering metrics."""
+    """Write gaussians.ply (and gaussians_planarity.ply with the field) and mesh.ply fused from the baked file,
+    score the file against the map at the keyframes, render every evaluated frame; returns the
+    mapping/rendering metrics."""
+    from ggfslam.eval.rendering import ply_fidelity
+    from ggfslam.gaussians.explicit import ExplicitGaussians
     from ggfslam.mapping.outputs import write_map_ply, write_planarity_ply, write_rendered_mesh
 
     out = {"mapping": mapper.stats()}
     out["mapping"]["ply_gaussians"] = write_map_ply(mapper, run_dir / GAUSSIANS_FILE)
+    baked = ExplicitGaussians.from_ply(run_dir / GAUSSIANS_FILE)  # what a viewer reads, read back as one does
+    out["mapping"]["ply_fidelity"] = ply_fidelity(mapper, baked)
     if mapper.ggf is not None:
         write_planarity_ply(mapper, run_dir / PLANARITY_FILE)
     if config.mapping.mesh:
         kf_poses = [T for _, T in sorted(tracker.map.poses().items())]
         try:
-            out["mapping"]["mesh_triangles"] = write_rendered_mesh(mapper, kf_poses, mapper.intr,
+            out["mapping"]["mesh_triangles"] = write_rendered_mesh(baked, kf_poses, mapper.intr,
                                                                    config.mapping.mesh_voxel, run_dir / MESH_FILE)
         except GGFSlamError as e:  # an empty map fuses no surface: the run's other outputs still count
             log.warning("mesh.ply not written: %s", e)
@@ -289,7 +294,7 @@ def rendering_metrics(config: Config, mapper, dataset, poses: np.ndarray) -> dic
     from ggfslam.mapping.keyframe_store import scaled_intrinsics
 
     c = config.mapping
-    intr = scaled_intrinsics(dataset.camera, c.eval_width or c.train_width)
+    intr = scaled_intrinsics(dataset.camera, c.eval_width)
     idx = np.arange(0, len(dataset), c.eval_stride)
     return render_metrics(mapper, dataset, poses, idx, intr, LPIPS(config.eval.lpips_weights))
 

@@ -10,10 +10,10 @@ from ggfslam.gaussians.optim import make_adam
 from ggfslam.gaussians.ply import read_gaussians_ply, write_gaussians_ply
 
 
-def _map(n=50, voxel=0.1, k=4, seed=0):
+def _map(n=50, voxel=0.1, k=4, seed=0, **decoder):
     rng = np.random.default_rng(seed)
     pts = rng.uniform(-1, 1, (n, 3))
-    m = AnchorMap(voxel, n_offsets=k, feature_dim=8, hidden=16, seed=seed)
+    m = AnchorMap(voxel, n_offsets=k, feature_dim=8, hidden=16, seed=seed, **decoder)
     vals, first = m.new_anchor_values(pts, rng.uniform(0, 1, (n, 3)), source_kf=3)
     m.append(vals)
     with torch.no_grad():
@@ -74,19 +74,27 @@ def test_decoder_gradients_match_finite_differences():
     assert torch.autograd.gradcheck(f, (feats, log_scale, offsets, base), eps=1e-6, atol=1e-6)
 
 
-def test_view_direction_changes_colour_only_when_view_dependent():
+def test_what_the_viewpoint_changes_in_each_decoder():
+    """Default: only the SH colour follows the view; degree 0: nothing; Scaffold-GS: shape and opacity too."""
     m, _ = _map(10)
     with torch.no_grad():
         m.decoder.opacity[-1].bias.fill_(5.0)  # every child kept from both views
-    a = m.decode(np.array([0.0, 0.0, -3.0]))
-    b = m.decode(np.array([3.0, 0.0, 0.0]))
+        m.decoder.color[-1].weight.normal_(0, 0.3, generator=torch.Generator().manual_seed(1))
+    front, side = np.array([0.0, 0.0, -3.0]), np.array([3.0, 0.0, 0.0])
+    a, b = m.decode(front), m.decode(side)
     assert len(a) == len(b) == m.n_anchors * m.k
-    assert (a.colors - b.colors).abs().max() > 1e-4
-    m.decoder.view_dependent = False
-    a = m.decode(np.array([0.0, 0.0, -3.0]))
-    b = m.decode(np.array([3.0, 0.0, 0.0]))
-    torch.testing.assert_close(a.colors, b.colors)
-    torch.testing.assert_close(a.means, b.means)
+    assert (a.colors - b.colors).abs().max() > 1e-3
+    for name in ("means", "quats", "scales", "opacities"):
+        torch.testing.assert_close(getattr(a, name), getattr(b, name))
+    flat, _ = _map(10, sh_degree=0)
+    torch.testing.assert_close(flat.decode(front).colors, flat.decode(side).colors)
+    scaffold, _ = _map(10, view_dependent=True, sh_degree=0)
+    with torch.no_grad():
+        scaffold.decoder.opacity[-1].bias.fill_(5.0)
+        for mlp in (scaffold.decoder.opacity, scaffold.decoder.cov):
+            mlp[0].weight[:, -4:].normal_(0, 1.0, generator=torch.Generator().manual_seed(2))
+    a, b = scaffold.decode(front), scaffold.decode(side)
+    assert (a.scales - b.scales).abs().max() > 1e-4 and (a.opacities - b.opacities).abs().max() > 1e-4
 
 
 def _optimizer(m):

@@ -289,7 +289,7 @@ def test_mapper_with_field_renders_planar_weight_and_resumes(sequence, tmp_path)
     # planarity PLY: the same Gaussians as the map PLY, red for 2D and blue for 3D
     n = write_planarity_ply(m, tmp_path / "p.ply")
     ply = read_gaussians_ply(tmp_path / "p.ply")
-    assert len(ply["means"]) == n == len(m.export_gaussians())
+    assert len(ply["means"]) == n == len(m.bake_gaussians())
     # checkpoint: a restored mapper has the same field and renders the same images
     m2 = _mapper(ds, poses, store=m.store.dir, aof_every=2)
     m2.load_state(copy.deepcopy(m.state()))  # as a checkpoint file would: no tensors shared with m

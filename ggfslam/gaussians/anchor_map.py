@@ -24,10 +24,13 @@ Children are decoded by ``ChildDecoder`` (decoders.py). All per-anchor tensors a
 """
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 import torch
 from torch import nn
 
+from ggfslam.gaussians.child_head import SurfelSpec
 from ggfslam.gaussians.decoders import ChildDecoder, DecodedGaussians
 
 PER_ANCHOR_PARAMS = ("features", "log_scale", "offsets", "base_color")
@@ -50,7 +53,7 @@ class AnchorMap(nn.Module):
     """Anchors and the MLP decoders of their children (see the module docstring for the fields)."""
 
     def __init__(self, voxel_size: float, n_offsets: int = 10, feature_dim: int = 32, hidden: int = 32,
-                 view_dependent: bool = True, seed: int = 0):
+                 view_dependent: bool = False, seed: int = 0, sh_degree: int = 1):
         super().__init__()
         if not voxel_size > 0:
             raise ValueError(f"voxel_size must be > 0, got {voxel_size}")
@@ -67,7 +70,7 @@ class AnchorMap(nn.Module):
         self.log_scale = nn.Parameter(torch.zeros(0, 3))  # [A, 3]
         self.offsets = nn.Parameter(torch.zeros(0, self.k, 3))  # [A, k, 3]
         self.base_color = nn.Parameter(torch.zeros(0, 3))  # [A, 3] logits
-        self.decoder = ChildDecoder(feature_dim, self.k, hidden, view_dependent)
+        self.decoder = ChildDecoder(feature_dim, self.k, hidden, view_dependent, sh_degree)
         self._keys = np.zeros(0, dtype=np.int64)  # sorted voxel keys of the anchors
         self._key_anchor = np.zeros(0, dtype=np.int64)  # anchor index of each sorted key
 
@@ -208,31 +211,65 @@ class AnchorMap(nn.Module):
         return (self.obs_color_sq / t - m * m).clamp_min(0).mean(dim=1)
 
     # --- decoding ----------------------------------------------------------------------------------
-    def visible_anchors(self, T_cw: np.ndarray, intr, near: float = 0.05, margin: float = 0.15) -> torch.Tensor:
-        """Anchors [A] bool whose centre projects inside the image widened by ``margin`` (fraction)."""
+    @torch.no_grad()
+    def reach(self) -> torch.Tensor:
+        """Radius [A] (m) around each anchor that holds its children to 3 sigma: the farthest offset plus three
+        times the largest child scale (children's scales are at most ``l_v``)."""
+        if self.n_anchors == 0:
+            return torch.zeros(0)
+        L = torch.exp(self.log_scale)  # [A, 3]
+        return (self.offsets * L[:, None, :]).norm(dim=2).amax(dim=1) + 3.0 * L.amax(dim=1)
+
+    def visible_anchors(self, T_cw: np.ndarray, intr, near: float = 0.05, margin: float = 0.02) -> torch.Tensor:
+        """Anchors [A] bool whose children can reach the image: the sphere of ``reach()`` around the anchor meets
+        the view frustum (widened by ``margin`` of the image size). Anchors culled by their centre alone (as
+        Scaffold-GS does) left children that project into the image untrained and unseen in training, but drawn
+        by any renderer of the whole map: floaters in the baked file."""
         if self.n_anchors == 0:
             return torch.zeros(0, dtype=torch.bool)
         R = torch.from_numpy(T_cw[:3, :3].astype(np.float32))
         t = torch.from_numpy(T_cw[:3, 3].astype(np.float32))
         pc = self.anchors @ R.T + t  # [A, 3] camera frame
+        r = self.reach()  # [A]
         z = pc[:, 2]
-        zs = z.clamp_min(1e-6)
-        u = intr.fx * pc[:, 0] / zs + intr.cx
-        v = intr.fy * pc[:, 1] / zs + intr.cy
-        mw, mh = margin * intr.width, margin * intr.height
-        return (z > near) & (u > -mw) & (u < intr.width + mw) & (v > -mh) & (v < intr.height + mh)
+        ahead = z - r  # the sphere's nearest depth
+        zs = ahead.clamp_min(1e-6)
+        # a sphere entirely in front projects within f r / (z - r) of its centre's projection
+        u = intr.fx * pc[:, 0] / z.clamp_min(1e-6) + intr.cx
+        v = intr.fy * pc[:, 1] / z.clamp_min(1e-6) + intr.cy
+        ru, rv = intr.fx * r / zs + margin * intr.width, intr.fy * r / zs + margin * intr.height
+        inside = (u > -ru) & (u < intr.width + ru) & (v > -rv) & (v < intr.height + rv)
+        # a sphere that reaches behind the near plane but has part in front: keep it if it is ahead of the camera
+        straddle = (ahead <= near) & (z + r > near) & (pc[:, :2].norm(dim=1) < z.abs() + r + 1.0)
+        return (z + r > near) & (inside & (ahead > near) | straddle)
 
-    def decode(self, cam_center: np.ndarray | torch.Tensor, mask: torch.Tensor | None = None) -> DecodedGaussians:
-        """Children of the anchors in ``mask`` [A] (all when None) seen from ``cam_center`` [3] (world)."""
+    def decode(self, cam_center: np.ndarray | torch.Tensor, mask: torch.Tensor | None = None,
+               surfels: Callable[[torch.Tensor], SurfelSpec | None] | None = None,
+               reference: bool = False) -> DecodedGaussians:
+        """Children of the anchors in ``mask`` [A] (all when None) seen from ``cam_center`` (world): one point [3],
+        or one viewpoint per anchor [A, 3] (the bake). ``surfels(index [M])`` gives AMR's inputs for the decoded
+        anchors (the Geometric-Gaussian Field); ``reference`` decodes in plain torch without AMR (tests)."""
         idx = torch.arange(self.n_anchors) if mask is None else torch.nonzero(mask)[:, 0]  # [M]
         c = torch.as_tensor(np.asarray(cam_center, np.float32)) if not isinstance(cam_center, torch.Tensor) else cam_center
-        return self.decoder(self.anchors[idx], self.features[idx], self.log_scale[idx], self.offsets[idx],
-                            self.base_color[idx], c.float(), idx)
+        c = c.float()
+        if c.dim() == 2:
+            c = c[idx]
+        args = (self.anchors[idx], self.features[idx], self.log_scale[idx], self.offsets[idx], self.base_color[idx],
+                c, idx)
+        if reference:
+            return self.decoder.reference(*args)
+        return self.decoder(*args, surfels=surfels(idx) if surfels is not None else None)
+
+    def decode_dense(self, cam_center: torch.Tensor, index: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """Every child (none dropped) of anchors ``index`` [M] seen from ``cam_center`` [M, 3] (``ChildDecoder.dense``)."""
+        return self.decoder.dense(self.anchors[index], self.features[index], self.log_scale[index],
+                                  self.offsets[index], self.base_color[index], cam_center)
 
     def extra_state(self) -> dict:
         """Sizes and settings needed to rebuild an empty map before ``load_state_dict``."""
         return {"voxel_size": self.voxel_size, "n_offsets": self.k, "feature_dim": self.feature_dim,
                 "hidden": self.decoder.hidden, "view_dependent": self.decoder.view_dependent,
+                "sh_degree": self.decoder.sh_degree,
                 "n_anchors": self.n_anchors, "layout_version": self.layout_version,
                 "geometry_version": self.geometry_version, "observed_version": self.observed_version}
 
@@ -240,7 +277,7 @@ class AnchorMap(nn.Module):
     def from_state(cls, extra: dict, state: dict) -> AnchorMap:
         """Rebuild a map saved as (``extra_state()``, ``state_dict()``)."""
         m = cls(extra["voxel_size"], extra["n_offsets"], extra["feature_dim"], extra["hidden"],
-                extra["view_dependent"])
+                extra["view_dependent"], sh_degree=extra.get("sh_degree", 0))
         n = extra["n_anchors"]
         for name, (shape, dtype) in PER_ANCHOR_BUFFERS.items():
             setattr(m, name, torch.zeros((n,) + shape, dtype=dtype))

@@ -3,8 +3,9 @@
 The Gaussian layout is the one the original 3DGS code writes and SuperSplat, SIBR, the antimatter15 viewer and the
 gsplat tools read: binary little-endian float32 ``x y z nx ny nz f_dc_0..2 f_rest_0..44 opacity scale_0..2
 rot_0..3``, with colours as degree-0 SH coefficients, opacity as a logit, scales as natural logs and rotations as
-w, x, y, z quaternions. We have no higher-order SH, but still write 45 zero ``f_rest`` values because several
-viewers assume degree 3 from the stride.
+w, x, y, z quaternions. A bake may carry degree-1 SH (``sh_rest``); the file always holds 45 ``f_rest`` values
+(degree 3, the rest zero) because several viewers assume degree 3 from the stride. ``f_rest`` is channel-major as
+3DGS writes it: ``f_rest_{c * 15 + j}`` is coefficient j + 1 of colour channel c.
 """
 from __future__ import annotations
 
@@ -72,8 +73,9 @@ def _atomic_write(path: Path, header: bytes, body: np.ndarray) -> None:
         raise
 
 
-def write_gaussians_ply(path, means, quats, scales, opacities, colors) -> None:
-    """Write Gaussians (means [N,3], wxyz quats [N,4], linear scales [N,3], opacities [N], rgb [N,3]) as a 3DGS PLY."""
+def write_gaussians_ply(path, means, quats, scales, opacities, colors, sh_rest=None) -> None:
+    """Write Gaussians (means [N,3], wxyz quats [N,4], linear scales [N,3], opacities [N], rgb [N,3] (the DC colour),
+    optional SH [N, B, 3] of degree >= 1 (basis B = 3 or 8 or 15, channel)) as a 3DGS PLY."""
     path = Path(path)
     means = _as_numpy("means", means, (None, 3))  # [N, 3]
     n = means.shape[0]
@@ -84,6 +86,9 @@ def write_gaussians_ply(path, means, quats, scales, opacities, colors) -> None:
         opacities = opacities.reshape(n)
     opacities = _as_numpy("opacities", opacities, (n,))  # [N]
     colors = _as_numpy("colors", colors, (n, 3))  # [N, 3]
+    rest = None if sh_rest is None else _as_numpy("sh_rest", sh_rest, (n, None, 3))  # [N, B, 3]
+    if rest is not None and rest.shape[1] not in (3, 8, 15):
+        raise ValueError(f"sh_rest: expected 3, 8 or 15 coefficients per channel (SH degree 1-3), got {rest.shape[1]}")
 
     qnorm = np.linalg.norm(quats, axis=1, keepdims=True)  # [N, 1]
     if np.any(qnorm == 0):
@@ -91,9 +96,13 @@ def write_gaussians_ply(path, means, quats, scales, opacities, colors) -> None:
     p = np.clip(opacities, _OPACITY_EPS, 1.0 - _OPACITY_EPS)
 
     # every property is float32, so a plain [N, 62] array has exactly the packed record layout
-    data = np.zeros((n, len(GAUSSIAN_PROPERTIES)), dtype="<f4")  # [N, 62]; normals and f_rest stay 0
+    data = np.zeros((n, len(GAUSSIAN_PROPERTIES)), dtype="<f4")  # [N, 62]; normals (and unused f_rest) stay 0
     data[:, 0:3] = means
     data[:, 6:9] = (colors - 0.5) / SH_C0
+    if rest is not None:
+        per = N_SH_REST // 3
+        for c in range(3):
+            data[:, 9 + c * per:9 + c * per + rest.shape[1]] = rest[:, :, c]
     o = 9 + N_SH_REST
     data[:, o] = np.log(p) - np.log1p(-p)
     data[:, o + 1:o + 4] = np.log(np.maximum(scales, _SCALE_MIN))

@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from ggfslam.config import GGFConfig
+from ggfslam.gaussians.child_head import SurfelSpec
 from ggfslam.gaussians.decoders import DecodedGaussians
 from ggfslam.ggf.amr import morph_loss, quat_z_to, surfel_shape
 from ggfslam.ggf.aof import EVOLUTION, SUPPRESSION, feedback_loss, feedback_targets, posterior_flatness
@@ -78,9 +79,38 @@ class GeometricGaussianField:
         return self.p2d() > self.cfg.planar_threshold
 
     # --- AMR -----------------------------------------------------------------------------------------
+    def surfel_spec(self, amap, index: torch.Tensor) -> SurfelSpec | None:
+        """AMR's inputs for anchors ``index`` [M] of ``amap`` (the child head applies them while decoding); None
+        when AMR is off or none of them is planar."""
+        if not self.cfg.amr or len(index) == 0:
+            return None
+        planar = self.planar().index_select(0, index)  # [M]
+        if not bool(planar.any()):
+            return None
+        geo, c = self.geom, self.cfg
+        return SurfelSpec(planar, geo.normals.index_select(0, index), self._align.index_select(0, index),
+                          amap.surface.index_select(0, index), c.surfel_radius * geo.spacing.index_select(0, index),
+                          c.surfel_eps * self.voxel_size, c.snap)
+
+    def morph(self, g: DecodedGaussians) -> torch.Tensor:
+        """L_morph over (an even sample of) the children of planar anchors in g, on the decoder's own shape
+        (``g.unshaped``): it keeps children surfel-like should their anchor later drop below the threshold."""
+        if not self.cfg.amr or len(g) == 0:
+            return torch.zeros(())
+        idx = torch.nonzero(self.planar().index_select(0, g.anchor_index))[:, 0]
+        if len(idx) == 0:
+            return torch.zeros(())
+        if len(idx) > MORPH_SAMPLES:  # an evenly spaced sample: the loss trains the shared decoder, not each child
+            idx = idx[:: -(-len(idx) // MORPH_SAMPLES)]
+        quats, scales = g.unshaped(idx)
+        c = self.cfg
+        n = self.geom.normals.index_select(0, g.anchor_index[idx])
+        return morph_loss(quats, scales, n, c.surfel_eps * self.voxel_size, self.voxel_size, c.lambda_dir,
+                          c.lambda_thin)
+
     def shape(self, g: DecodedGaussians, amap) -> tuple[DecodedGaussians, torch.Tensor]:
-        """Children g of ``amap`` with AMR applied to those of planar anchors (unchanged when AMR is off),
-        and L_morph."""
+        """Children g of ``amap`` decoded without AMR (``decode(reference=True)``) with AMR applied to those of
+        planar anchors in plain torch, and L_morph: the reference of the child head's AMR."""
         zero = torch.zeros(())
         if not self.cfg.amr or len(g) == 0:
             return g, zero
@@ -92,13 +122,9 @@ class GeometricGaussianField:
         n = geo.normals.index_select(0, a)  # [G, 3]
         eps = c.surfel_eps * self.voxel_size
         radius = c.surfel_radius * geo.spacing.index_select(0, a)
-        # all children at once and a select: cheaper than gathering and scattering the planar subset
         quats, scales, means = surfel_shape(g.quats, g.scales, g.means, n, amap.surface.index_select(0, a), radius,
                                             eps, self._align.index_select(0, a), planar, c.snap)
-        idx = torch.nonzero(planar)[:, 0]
-        if len(idx) > MORPH_SAMPLES:  # an evenly spaced sample: the loss trains the shared decoder, not each child
-            idx = idx[:: -(-len(idx) // MORPH_SAMPLES)]
-        l_morph = morph_loss(g.quats[idx], g.scales[idx], n[idx], eps, self.voxel_size, c.lambda_dir, c.lambda_thin)
+        l_morph = self.morph(g)
         return DecodedGaussians(means, quats, scales, g.opacities, g.colors, g.anchor_index, g.child_index), l_morph
 
     # --- AOF -----------------------------------------------------------------------------------------

@@ -2,14 +2,15 @@
 
 A long sequence keeps thousands of keyframes; holding their images in memory is what makes peer systems
 grow until they crash. Each keyframe is written once as ``<dir>/kf_<id>.npz`` (uint8 colour, float32
-depth in metres) and read back through an LRU cache of ``cache_size`` entries.
+depth in metres) and read back through an LRU cache of ``cache_size`` entries. Coarse levels (level 1 = half
+the training size, for coarse-to-fine training) are made from level 0 on first use and cached beside it.
 """
 from __future__ import annotations
 
 import os
 import threading
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -20,9 +21,9 @@ from ggfslam.geometry.depth import normals_from_depth, resize_depth_image
 from ggfslam.render.types import Intrinsics
 
 
-def scaled_intrinsics(camera: Camera, width: int) -> Intrinsics:
-    """Intrinsics of the camera's images resized to ``width`` (aspect kept, never upscaled)."""
-    if width >= camera.width:
+def scaled_intrinsics(camera: Camera, width: int | None) -> Intrinsics:
+    """Intrinsics of the camera's images resized to ``width`` (aspect kept, never upscaled; None = as they are)."""
+    if width is None or width >= camera.width:
         return Intrinsics.of(camera)
     return Intrinsics.of(camera.resized(width, max(1, int(round(camera.height * width / camera.width)))))
 
@@ -48,6 +49,7 @@ class KeyframeImages:
     depth: np.ndarray  # [h, w] float32 metres, 0 = invalid
     normals: np.ndarray  # [h, w, 3] float32 camera-frame normals of the depth (0 = undefined)
     frame_index: int
+    levels: dict = field(default_factory=dict, repr=False)  # level -> KeyframeImages at half, quarter, ... size
 
 
 class KeyframeStore:
@@ -97,9 +99,19 @@ class KeyframeStore:
         return item
 
     def _make(self, rgb8: np.ndarray, depth: np.ndarray, frame_index: int) -> KeyframeImages:
-        i = self.intr
+        return self._images(rgb8.astype(np.float32) / 255.0, depth, frame_index, self.intr)
+
+    @staticmethod
+    def _images(rgb: np.ndarray, depth: np.ndarray, frame_index: int, i: Intrinsics) -> KeyframeImages:
         n = normals_from_depth(depth.astype(np.float64), i.fx, i.fy, i.cx, i.cy).astype(np.float32)
-        return KeyframeImages(rgb8.astype(np.float32) / 255.0, depth, n, frame_index)
+        return KeyframeImages(rgb, depth, n, frame_index)
+
+    def level_intrinsics(self, level: int) -> Intrinsics:
+        """Intrinsics of level ``level`` (0 = the training size, each level half the one before)."""
+        intr = self.intr
+        for _ in range(level):
+            intr = intr.half()
+        return intr
 
     def _put(self, kf_id: int, item: KeyframeImages) -> None:
         self._cache[kf_id] = item
@@ -107,18 +119,24 @@ class KeyframeStore:
         while len(self._cache) > self.cache_size:
             self._cache.popitem(last=False)
 
-    def get(self, kf_id: int) -> KeyframeImages:
-        """A keyframe's training images (from the cache or disk)."""
+    def get(self, kf_id: int, level: int = 0) -> KeyframeImages:
+        """A keyframe's training images (from the cache or disk), at ``level`` (0 = training size)."""
         with self._lock:
             item = self._cache.get(kf_id)
             if item is not None:
                 self._cache.move_to_end(kf_id)
-                return item
-        with np.load(self.path(kf_id)) as z:
-            item = self._make(z["rgb"], z["depth"], int(z["frame_index"]))
-        with self._lock:
-            self._put(kf_id, item)
-        return item
+        if item is None:
+            with np.load(self.path(kf_id)) as z:
+                item = self._make(z["rgb"], z["depth"], int(z["frame_index"]))
+            with self._lock:
+                self._put(kf_id, item)
+        for lv in range(1, level + 1):
+            if lv not in item.levels:
+                prev = item.levels.get(lv - 1, item) if lv > 1 else item
+                i = self.level_intrinsics(lv)
+                rgb, depth = resize_rgbd(prev.rgb, prev.depth, i)
+                item.levels[lv] = self._images(rgb, depth, item.frame_index, i)
+        return item.levels[level] if level else item
 
     def retain(self, kf_ids) -> list[int]:
         """Delete the stored keyframes not in ``kf_ids`` (a resumed run re-creates those after its checkpoint);

@@ -33,6 +33,7 @@ from torch import nn
 
 from ggfslam.config import GGFConfig, MappingConfig
 from ggfslam.gaussians.anchor_map import AnchorMap
+from ggfslam.gaussians.bake import fit_sh1, observing_keyframes
 from ggfslam.gaussians.decoders import DecodedGaussians
 from ggfslam.gaussians.density import DensityControl
 from ggfslam.gaussians.optim import make_adam, replace_param
@@ -45,6 +46,8 @@ from ggfslam.render.api import rasterize
 from ggfslam.render.types import Intrinsics, RenderOutput, RenderSettings
 
 PoseSource = Callable[[], dict[int, np.ndarray]]  # keyframe id -> T_wc [4, 4]
+REFERENCE_EXPOSURE = -1
+"""``exposure_kf`` of views without a keyframe of their own: the keyframes' median exposure."""
 
 
 class ViewSink(Protocol):
@@ -67,7 +70,10 @@ class Mapper:
         self.ggf = GeometricGaussianField(self.ggf_cfg, cfg.voxel_size, seed) if self.ggf_cfg.enabled else None
         self.intr = scaled_intrinsics(camera, cfg.train_width)
         self.store = KeyframeStore(store_dir, self.intr, cfg.keyframe_cache)
-        self.map = AnchorMap(cfg.voxel_size, cfg.n_offsets, cfg.feature_dim, cfg.hidden, cfg.view_dependent, seed)
+        # coarse-to-fine only where half the training size still has detail to learn from
+        self.coarse_levels = cfg.coarse_fraction > 0 and self.intr.width >= 2 * cfg.coarse_min_width
+        self.map = AnchorMap(cfg.voxel_size, cfg.n_offsets, cfg.feature_dim, cfg.hidden, cfg.view_dependent, seed,
+                             cfg.sh_degree)
         self.density = DensityControl(self.map, cfg.grow_grad_threshold, cfg.prune_min_opacity,
                                       cfg.density_min_visits, cfg.max_anchors)
         self.exposure = nn.Parameter(torch.zeros(0, 6))  # [E, 6]: log gain (3), offset (3) per keyframe
@@ -213,6 +219,15 @@ class Mapper:
         return moved
 
     # --- training ------------------------------------------------------------------------------------
+    def keyframe_budget(self, kf_id: int) -> int:
+        """Steps a new keyframe gets: ``iterations_per_frame`` per frame since the stored keyframe before it, at
+        least ``iterations_per_keyframe``."""
+        c = self.cfg
+        frame = self.store.frame_index(kf_id)
+        before = [self.store.frame_index(k) for k in self.store.ids() if self.store.frame_index(k) < frame]
+        frames = frame - max(before) if before else 1
+        return max(c.iterations_per_keyframe, int(round(c.iterations_per_frame * frames)))
+
     def train(self, n: int, focus: int | None = None, stop: threading.Event | None = None) -> None:
         """n optimization steps; with ``focus`` every other step is on that keyframe, the rest on a window.
         A set ``stop`` event ends the loop after the current step."""
@@ -232,32 +247,50 @@ class Mapper:
                 kf = int(window[(it // 2) % len(window)])
             else:
                 kf = int(ids[self.rng.integers(len(ids))])
-            self.step(kf)
+            self.step(kf, *self._step_view())
 
-    def _decode(self, T_wc: np.ndarray, intr: Intrinsics, without_kf: int | None = None
-                ) -> tuple[DecodedGaussians, torch.Tensor]:
+    def _step_view(self) -> tuple[int, tuple[int, int, int, int] | None]:
+        """(level, crop) of the next step: a share ``coarse_fraction`` of the steps see whole images at half the
+        training size, the others the training size, on a random crop of ``crop`` of each side."""
+        c = self.cfg
+        if self.coarse_levels and self.rng.random() < c.coarse_fraction:
+            return 1, None
+        if c.crop >= 1.0:
+            return 0, None
+        i = self.intr
+        w, h = max(32, int(round(c.crop * i.width))), max(32, int(round(c.crop * i.height)))
+        w, h = min(w, i.width), min(h, i.height)
+        return 0, (int(self.rng.integers(i.width - w + 1)), int(self.rng.integers(i.height - h + 1)), w, h)
+
+    def _decode(self, cam_center: np.ndarray | torch.Tensor, mask: torch.Tensor | None = None) -> DecodedGaussians:
+        """Children of the anchors in ``mask`` seen from ``cam_center`` ([3], or [A, 3] one per anchor), with AMR
+        on those of planar anchors when the map has a Geometric-Gaussian Field."""
+        if self.ggf is None:
+            return self.map.decode(cam_center, mask)
+        self._refresh_field()
+        return self.map.decode(cam_center, mask, lambda idx: self.ggf.surfel_spec(self.map, idx))
+
+    def _decode_view(self, T_wc: np.ndarray, intr: Intrinsics, without_kf: int | None = None
+                     ) -> tuple[DecodedGaussians, torch.Tensor]:
+        """The children in view of a camera at T_wc [4, 4] (and the anchor mask [A] they come from)."""
         mask = self.map.visible_anchors(invert(T_wc), intr, self.settings.near_plane)
         if without_kf is not None:
             mask &= self.map.source_kf != without_kf
-        return self.map.decode(T_wc[:3, 3], mask), mask
+        return self._decode(T_wc[:3, 3], mask), mask
 
     def _refresh_field(self) -> None:
         """Bring the field's anchor geometry up to date with the map (cameras orient the normals)."""
         centres = {k: T[:3, 3] for k, T in self.anchor_poses.items()}
         self.ggf.refresh(self.map, centres, self.iteration)
 
-    def _field(self, g: DecodedGaussians, channel: bool = True
-               ) -> tuple[DecodedGaussians, torch.Tensor, torch.Tensor | None]:
-        """AMR on decoded children, L_morph and (with ``channel``) the P_2D channel [G, 1]; (g, 0, None)
-        without the field."""
-        if self.ggf is None:
-            return g, torch.zeros(()), None
-        self._refresh_field()
-        g, l_morph = self.ggf.shape(g, self.map)
-        return g, l_morph, self.ggf.p2d()[g.anchor_index][:, None] if channel else None
+    def _planar_channel(self, g: DecodedGaussians) -> torch.Tensor | None:
+        """P_2D of each child's anchor [G, 1] (the renderer's planar-weight channel); None without the field."""
+        return None if self.ggf is None else self.ggf.p2d()[g.anchor_index][:, None]
 
-    def step(self, kf_id: int, poses: dict[int, np.ndarray] | None = None) -> dict[str, float]:
-        """One Adam step on keyframe ``kf_id``; returns the loss terms."""
+    def step(self, kf_id: int, level: int = 0, crop: tuple[int, int, int, int] | None = None,
+             poses: dict[int, np.ndarray] | None = None) -> dict[str, float]:
+        """One Adam step on keyframe ``kf_id`` at ``level`` (0 = training size, 1 = half), on the pixels
+        ``crop`` = (x0, y0, width, height) of that level's image (None = all); returns the loss terms."""
         t0 = time.perf_counter()
         c = self.cfg
         with self.lock:
@@ -268,26 +301,33 @@ class Mapper:
                 self._poses = poses
                 self.sync_poses(poses)
             T_wc = self._poses[kf_id]
-            item = self.store.get(kf_id)
-            g, mask = self._decode(T_wc, self.intr)
+            item = self.store.get(kf_id, level)
+            full = self.store.level_intrinsics(level)
+            intr, rgb, depth, normals = full, item.rgb, item.depth, item.normals
+            if crop is not None:
+                x0, y0, w, h = crop
+                intr = full.crop(x0, y0, w, h)
+                rgb, depth, normals = (a[y0:y0 + h, x0:x0 + w] for a in (rgb, depth, normals))
+            g, mask = self._decode_view(T_wc, intr)
             if len(g) == 0:
                 return {}
             # the planar-weight channel is for renders (and a view sink), not for the loss
-            sink = self.view_sink if self.view_sink is not None and self.view_sink.wants(kf_id, self.iteration) \
-                else None
-            g, l_morph, p2d = self._field(g, channel=sink is not None)
-            out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, self.intr,
+            sink = self.view_sink if (self.view_sink is not None and level == 0 and crop is None
+                                      and self.view_sink.wants(kf_id, self.iteration)) else None
+            p2d = self._planar_channel(g) if sink is not None else None
+            l_morph = self.ggf.morph(g) if self.ggf is not None and self.ggf_cfg.lambda_morph > 0 else torch.zeros(())
+            out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, intr,
                             torch.from_numpy(invert(T_wc)).float(), settings=self.settings,
                             extras=None if p2d is None else p2d.detach())
             color = self._expose(out.color, kf_id)
-            gt_rgb = torch.from_numpy(item.rgb)
-            gt_depth = torch.from_numpy(item.depth)
+            gt_rgb = torch.from_numpy(np.ascontiguousarray(rgb))
+            gt_depth = torch.from_numpy(np.ascontiguousarray(depth))
             l_photo = photometric_loss(color, gt_rgb, c.lambda_ssim)
             l_depth = depth_loss(out.depth, gt_depth)
             loss = l_photo + c.lambda_depth * l_depth
             l_normal = torch.zeros(())
             if c.lambda_normal > 0:
-                l_normal = normal_loss(out.normals, torch.from_numpy(item.normals))
+                l_normal = normal_loss(out.normals, torch.from_numpy(np.ascontiguousarray(normals)))
                 loss = loss + c.lambda_normal * l_normal
             if c.lambda_scale > 0:
                 vol = g.scales.prod(dim=1).mean() / self.map.voxel_size ** 3
@@ -295,7 +335,8 @@ class Mapper:
             if self.ggf is not None and self.ggf_cfg.lambda_morph > 0:
                 loss = loss + self.ggf_cfg.lambda_morph * l_morph
             loss.backward()
-            self.density.accumulate(g, out.visible, out.means2d_grad(), mask, (self.intr.width, self.intr.height))
+            # NDC scale of the 2D gradients: the level's whole image, so a crop's children are judged alike
+            self.density.accumulate(g, out.visible, out.means2d_grad(), mask, (full.width, full.height))
             self.opt.step()
             self.opt.zero_grad(set_to_none=True)
             if sink is not None:
@@ -312,11 +353,15 @@ class Mapper:
             return self.last_losses
 
     def _expose(self, color: torch.Tensor, kf_id: int | None) -> torch.Tensor:
-        """Apply a keyframe's affine brightness to a rendered image [H, W, 3]."""
-        if kf_id is None or kf_id not in self.exposure_row or not self.cfg.exposure:
-            return color
-        e = self.exposure[self.exposure_row[kf_id]]
-        return color * torch.exp(e[:3]) + e[3:]
+        """Apply a keyframe's affine brightness (or with ``REFERENCE_EXPOSURE`` the keyframes' typical one) to
+        a rendered image [H, W, 3] or colours [N, 3]."""
+        if kf_id == REFERENCE_EXPOSURE:
+            e = self.reference_exposure()
+        elif kf_id is None or kf_id not in self.exposure_row or not self.cfg.exposure:
+            e = None
+        else:
+            e = self.exposure[self.exposure_row[kf_id]]
+        return color if e is None else color * torch.exp(e[:3]) + e[3:]
 
     # --- rendering -----------------------------------------------------------------------------------
     @torch.no_grad()
@@ -326,24 +371,107 @@ class Mapper:
         leaves out the anchors that keyframe seeded."""
         intr = intr or self.intr
         with self.lock:
-            g, _ = self._decode(T_wc, intr, without_kf)
-            g, _, p2d = self._field(g)
+            g, _ = self._decode_view(T_wc, intr, without_kf)
+            p2d = self._planar_channel(g)
             out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, intr,
                             torch.from_numpy(invert(T_wc)).float(), extras=p2d, settings=self.settings)
             out.color = self._expose(out.color, exposure_kf).clamp(0, 1)
             return out
 
     @torch.no_grad()
-    def export_gaussians(self) -> DecodedGaussians:
-        """Every child decoded view-independently (the view inputs zeroed, AMR applied) for PLY export."""
+    def bake_gaussians(self) -> DecodedGaussians:
+        """The map as explicit 3DGS Gaussians (AMR applied), for gaussians.ply, the mesh and the Gaussian count
+        (gaussians/bake.py): exactly the decoded children with their SH colours (``colors`` the DC part,
+        ``sh_rest`` [G, B, 3] the rest), or for a view-dependent (Scaffold-GS) decoder each anchor decoded from the
+        nearest keyframe that saw it, colours fitted as degree-1 SH over up to four observing keyframes. Colours
+        carry the keyframes' median exposure."""
         with self.lock:
-            view = self.map.decoder.view_dependent
-            self.map.decoder.view_dependent = False
-            try:
-                g = self.map.decode(np.zeros(3))
-            finally:
-                self.map.decoder.view_dependent = view
-            return self._field(g, channel=False)[0]
+            kf_ids = sorted(self.anchor_poses)
+            if not kf_ids or self.map.n_anchors == 0:
+                return self.map.decode(np.zeros(3), torch.zeros(self.map.n_anchors, dtype=torch.bool))
+            poses = [self._poses.get(k, self.anchor_poses[k]) for k in kf_ids]
+            if self.map.decoder.view_dependent:
+                g = self._bake_from_keyframes(kf_ids, poses)
+            else:
+                g = self._decode(poses[-1][:3, 3])  # the viewpoint only sets the (unused) evaluated colour
+                if len(g):
+                    slot = g.child_index % self.map.k
+                    dc, rest = self.map.decoder.sh(self.map.features, self.map.base_color)  # [A, k, 3], [A, k, B, 3]
+                    g.colors = dc[g.anchor_index, slot]
+                    g.sh_rest = rest[g.anchor_index, slot] if rest.shape[2] else None
+            # one file has one brightness: the keyframes' typical exposure (their learned gains drift together)
+            e = self.reference_exposure()
+            if e is not None:
+                g.colors = self._expose(g.colors, REFERENCE_EXPOSURE)
+                if g.sh_rest is not None:
+                    g.sh_rest = g.sh_rest * torch.exp(e[:3])
+            return g
+
+    def _bake_from_keyframes(self, kf_ids: list[int], poses: list[np.ndarray], max_views: int = 4) -> DecodedGaussians:
+        """A view-dependent map's children, each anchor decoded from its nearest observing keyframe, with
+        degree-1 SH colours fitted over up to ``max_views`` observing keyframes."""
+        depths = [self.store.get(k).depth for k in kf_ids]
+        views = observing_keyframes(self.map.surface.numpy(), poses, depths, self.intr, self.map.voxel_size,
+                                    max_views, self.settings.near_plane)
+        centres = torch.from_numpy(np.stack([T[:3, 3] for T in poses]).astype(np.float32))  # [K, 3]
+        first = torch.from_numpy(np.where(views.observed, views.views[:, 0], views.nearest))  # [A]
+        g = self._decode(centres[first])
+        if len(g):
+            g.colors, g.sh_rest = self._fit_sh1(g, centres, torch.from_numpy(views.views), first)
+        return g
+
+    def _fit_sh1(self, g: DecodedGaussians, centres: torch.Tensor, views: torch.Tensor, first: torch.Tensor
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Degree-1 SH colours of the baked children g over their anchors' observing keyframes views [A, V]."""
+        k = self.map.k
+        anchors, slot = g.anchor_index, g.child_index % k  # [G]
+        uniq, inv = torch.unique(anchors, return_inverse=True)  # [M], [G]
+        views = views[uniq].clone()  # [M, V]
+        views[:, 0] = first[uniq]  # the bake's own view (a fallback where no keyframe saw the anchor)
+        pos = self.map.anchors[uniq]  # [M, 3]
+        cols, dirs = [], []
+        for v in range(views.shape[1]):
+            c = centres[views[:, v].clamp_min(0)]  # [M, 3]
+            color = self.map.decode_dense(c, uniq)[4]  # [M, k, 3]
+            cols.append(color[inv, slot])  # [G, 3]
+            d = pos - c
+            dirs.append((d / d.norm(dim=1, keepdim=True).clamp_min(1e-9))[inv])
+        valid = (views >= 0)[inv]  # [G, V]
+        return fit_sh1(torch.stack(cols, 1), torch.stack(dirs, 1), valid)
+
+    def reexpose(self, color: torch.Tensor, kf_id: int) -> torch.Tensor:
+        """Colours [..., 3] under the reference exposure (a baked file's) brought to keyframe ``kf_id``'s exposure."""
+        e_ref = self.reference_exposure()
+        if e_ref is None or kf_id not in self.exposure_row:
+            return color
+        e = self.exposure.detach()[self.exposure_row[kf_id]]
+        return (color - e_ref[3:]) * torch.exp(e[:3] - e_ref[:3]) + e[3:]
+
+    def reference_exposure(self) -> torch.Tensor | None:
+        """The keyframes' median exposure [6] (log gain, offset): the brightness of views that have no keyframe
+        of their own (baked Gaussians, renders along new paths); None without exposure."""
+        if not self.cfg.exposure or len(self.exposure_row) == 0:
+            return None
+        return self.exposure.detach().median(dim=0).values
+
+    def _fit_sh1(self, g: DecodedGaussians, centres: torch.Tensor, views: torch.Tensor, first: torch.Tensor
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Degree-1 SH colours of the baked children g over their anchors' observing keyframes views [A, V]."""
+        k = self.map.k
+        anchors, slot = g.anchor_index, g.child_index % k  # [G]
+        uniq, inv = torch.unique(anchors, return_inverse=True)  # [M], [G]
+        views = views[uniq].clone()  # [M, V]
+        views[:, 0] = first[uniq]  # the bake's own view (a fallback where no keyframe saw the anchor)
+        pos = self.map.anchors[uniq]  # [M, 3]
+        cols, dirs = [], []
+        for v in range(views.shape[1]):
+            c = centres[views[:, v].clamp_min(0)]  # [M, 3]
+            color = self.map.decode_dense(c, uniq)[4]  # [M, k, 3]
+            cols.append(color[inv, slot])  # [G, 3]
+            d = pos - c
+            dirs.append((d / d.norm(dim=1, keepdim=True).clamp_min(1e-9))[inv])
+        valid = (views >= 0)[inv]  # [G, V]
+        return fit_sh1(torch.stack(cols, 1), torch.stack(dirs, 1), valid)
 
     @torch.no_grad()
     def planarity(self) -> dict[str, torch.Tensor]:
@@ -354,7 +482,7 @@ class Mapper:
         if self.ggf is None:
             raise RuntimeError("the map has no Geometric-Gaussian Field (ggf.enabled is false)")
         with self.lock:
-            g = self.export_gaussians()
+            g = self.bake_gaussians()
             post, count = posterior_flatness(g.scales, g.anchor_index, self.map.n_anchors)
             geo = self.ggf.geom
             return {"p2d": self.ggf.p2d().clone(), "prior": self.ggf.prior.clone(), "posterior": post,
@@ -366,15 +494,15 @@ class Mapper:
     def export_planarity(self) -> DecodedGaussians:
         """The exported children coloured by their anchor's P_2D (red = 2D, blue = 3D), as in the paper's Fig. 4."""
         with self.lock:
-            g = self.export_gaussians()
+            g = self.bake_gaussians()
             if self.ggf is None:
                 raise RuntimeError("the map has no Geometric-Gaussian Field (ggf.enabled is false)")
             g.colors = planarity_colors(self.ggf.p2d()[g.anchor_index])
             return g
 
     def n_gaussians(self) -> int:
-        """Children with positive opacity, decoded view-independently."""
-        return len(self.export_gaussians())
+        """Children with positive opacity in the bake (each anchor seen from its nearest observing keyframe)."""
+        return len(self.bake_gaussians())
 
     def stats(self) -> dict:
         """Figures for metrics.json."""

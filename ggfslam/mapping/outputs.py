@@ -1,18 +1,21 @@
-"""What a trained map leaves in the run directory: the baked Gaussians PLY and the TSDF mesh."""
+"""What a trained map leaves in the run directory: the baked Gaussians PLY and the TSDF mesh fused from it."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
+from ggfslam.gaussians.explicit import ExplicitGaussians
 from ggfslam.gaussians.ply import write_gaussians_ply
 from ggfslam.mapping.tsdf import TSDFFusion, write_mesh
+from ggfslam.render.types import Intrinsics, RenderOutput
 
 
 def write_map_ply(mapper, path: str | Path) -> int:
-    """Bake every decoded child (view-independent) into a standard 3DGS PLY; returns the Gaussian count."""
-    g = mapper.export_gaussians()
-    write_gaussians_ply(path, g.means, g.quats, g.scales, g.opacities, g.colors)
+    """Bake the map (``Mapper.bake_gaussians``) into a standard 3DGS PLY; returns the Gaussian count."""
+    g = mapper.bake_gaussians()
+    write_gaussians_ply(path, g.means, g.quats, g.scales, g.opacities, g.colors, g.sh_rest)
     return len(g)
 
 
@@ -23,18 +26,21 @@ def write_planarity_ply(mapper, path: str | Path) -> int:
     return len(g)
 
 
-def fuse_rendered_mesh(mapper, poses: list[np.ndarray], intr, voxel: float, depth_max: float = 8.0):
-    """TSDF-fuse the map's rendered depth and colour at poses (camera-to-world) into a triangle mesh."""
+def fuse_rendered_mesh(render: Callable[[np.ndarray], RenderOutput], poses: list[np.ndarray], intr: Intrinsics,
+                       voxel: float, depth_max: float = 8.0):
+    """TSDF-fuse rendered depth and colour (``render(T_wc)`` at ``intr``) at poses (camera-to-world) into a mesh."""
     tsdf = TSDFFusion(intr, voxel_size=voxel, depth_max=depth_max)
     for T in poses:
-        out = mapper.render(T, intr)
+        out = render(T)
         depth = np.where(out.alpha.numpy() > 0.5, out.depth.numpy(), 0.0).astype(np.float32)
-        tsdf.integrate(depth, out.color.numpy(), T)
+        tsdf.integrate(depth, out.color.clamp(0, 1).numpy(), T)
     return tsdf.extract_mesh()
 
 
-def write_rendered_mesh(mapper, poses: list[np.ndarray], intr, voxel: float, path: str | Path) -> int:
-    """``fuse_rendered_mesh`` written to ``path`` (binary PLY); returns the triangle count."""
-    mesh = fuse_rendered_mesh(mapper, poses, intr, voxel)
+def write_rendered_mesh(baked: ExplicitGaussians, poses: list[np.ndarray], intr: Intrinsics, voxel: float,
+                        path: str | Path) -> int:
+    """The baked Gaussians (the PLY's) rendered at poses and TSDF-fused into a binary PLY mesh at ``path``; returns
+    the triangle count."""
+    mesh = fuse_rendered_mesh(lambda T: baked.render(T, intr), poses, intr, voxel)
     write_mesh(path, mesh)
     return len(mesh.triangles)

@@ -1,7 +1,7 @@
 """Mapping beside tracking: keyframes are queued and a worker thread trains; tracking never waits.
 
 The tracking thread stores a keyframe's images (``KeyframeStore.add``, a few ms) and queues its id; the
-worker seeds its anchors and trains ``iterations_per_keyframe`` steps focused on it, and between
+worker seeds its anchors and trains its budget of steps (``Mapper.keyframe_budget``) focused on it, and between
 keyframes keeps training on random keyframes (``mapping.idle_training``). The numba kernels release the
 GIL, and the worker gets an explicit numba thread budget (``mapping.threads``) so tracking and mapping
 do not oversubscribe the cores (PERF_NOTES: two threads each asking for all cores collapse). Once
@@ -56,7 +56,7 @@ class MappingWorker:
         """Queue an already stored keyframe for seeding and training."""
         if not self.concurrent:
             self.mapper.seed_keyframe(kf_id, landmarks=landmarks)
-            self.mapper.train(self.cfg.iterations_per_keyframe, focus=kf_id)
+            self.mapper.train(self.mapper.keyframe_budget(kf_id), focus=kf_id)
             return
         with self._pending_lock:
             self._pending[kf_id] = landmarks
@@ -94,7 +94,7 @@ class MappingWorker:
                 with self._pending_lock:
                     landmarks = self._pending.get(kf_id)
                 m.seed_keyframe(kf_id, landmarks=landmarks)
-                m.train(self.cfg.iterations_per_keyframe, focus=kf_id, stop=self._abort)
+                m.train(m.keyframe_budget(kf_id), focus=kf_id, stop=self._abort)
                 # pending until trained: a checkpoint taken meanwhile re-queues it on resume, where seeding it
                 # again is a no-op and its focused steps are run in full
                 with self._pending_lock:

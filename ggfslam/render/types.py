@@ -53,6 +53,20 @@ class Intrinsics:
             raise ValueError(f"invalid intrinsics {intr}")
         return intr
 
+    def scaled(self, width: int, height: int) -> Intrinsics:
+        """The same camera for the image resized to ``width`` x ``height`` (pixel centres kept, as ``Camera.resized``)."""
+        sx, sy = width / self.width, height / self.height
+        return Intrinsics(self.fx * sx, self.fy * sy, (self.cx + 0.5) * sx - 0.5, (self.cy + 0.5) * sy - 0.5,
+                          int(width), int(height))
+
+    def half(self) -> Intrinsics:
+        """``scaled`` to half the size (rounded down)."""
+        return self.scaled(max(1, self.width // 2), max(1, self.height // 2))
+
+    def crop(self, x0: int, y0: int, width: int, height: int) -> Intrinsics:
+        """The camera of the pixels [y0, y0 + height) x [x0, x0 + width) of this one's image."""
+        return Intrinsics(self.fx, self.fy, self.cx - x0, self.cy - y0, int(width), int(height))
+
     def K(self, dtype=torch.float32, device=None) -> torch.Tensor:
         """3x3 intrinsic matrix as a tensor."""
         return torch.tensor([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]],

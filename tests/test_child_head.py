@@ -1,0 +1,119 @@
+"""The compiled child head (gaussians/child_head.py) against its plain-torch reference (the decoder's ``reference``
+path followed by AMR's ``surfel_shape``): the same children, values and gradients, with and without surfels."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from ggfslam.gaussians.anchor_map import AnchorMap
+from ggfslam.gaussians.child_head import SurfelSpec
+from ggfslam.ggf.amr import quat_z_to, surfel_shape
+
+
+def _map(n: int = 300, seed: int = 0, view_dependent: bool = False, sh_degree: int = 1) -> AnchorMap:
+    g = torch.Generator().manual_seed(seed)
+    m = AnchorMap(0.05, 10, 16, 16, view_dependent, seed, sh_degree)
+    pts = torch.rand(n, 3, generator=g).numpy() * 2.0
+    vals, _ = m.new_anchor_values(pts, torch.rand(n, 3, generator=g).numpy())
+    m.append(vals)
+    with torch.no_grad():  # a trained-looking map: varied features, some children switched off
+        m.features.normal_(0, 1, generator=g)
+        m.log_scale.add_(0.3 * torch.randn(m.log_scale.shape, generator=g))
+        m.decoder.opacity[-1].bias.normal_(0, 0.5, generator=g)
+    return m
+
+
+def _spec(m: AnchorMap, idx: torch.Tensor, snap: bool, seed: int = 1) -> SurfelSpec:
+    g = torch.Generator().manual_seed(seed)
+    n = torch.nn.functional.normalize(torch.randn(len(idx), 3, generator=g), dim=1)
+    planar = torch.rand(len(idx), generator=g) > 0.4
+    return SurfelSpec(planar, n, quat_z_to(n), m.surface[idx] + 0.01, 0.004 + 0.01 * torch.rand(len(idx), generator=g),
+                      2e-5, snap)
+
+
+def _reference(m: AnchorMap, cam, spec: SurfelSpec | None):
+    g = m.decode(cam, reference=True)
+    if spec is None:
+        return g.means, g.quats, g.scales, g.opacities, g.colors, g.child_index
+    a = g.anchor_index  # the map's first anchors are the decoded ones (mask None)
+    q, s, mu = surfel_shape(g.quats, g.scales, g.means, spec.normals[a], spec.surface[a], spec.radius[a], spec.eps,
+                            spec.align[a], spec.planar[a], spec.snap)
+    colors = g.colors
+    if spec.snap:  # the SH colour is seen along the direction to where the child ends up
+        raw_c = m.decoder.raw(m.anchors, m.features)[1]  # [A, k, B, 3]
+        slot = g.child_index % m.k
+        colors = m.decoder._color(raw_c[a, slot][:, None], m.base_color[a], mu[:, None], cam)[:, 0]
+    return mu, q, s, g.opacities, colors, g.child_index
+
+
+@pytest.mark.parametrize("surfels,decoder", [("none", "sh1"), ("amr", "sh3"), ("amr+snap", "sh1"),
+                                             ("amr", "scaffold")])
+def test_child_head_matches_the_torch_reference(surfels, decoder):
+    m = _map(view_dependent=decoder == "scaffold", sh_degree={"sh1": 1, "sh3": 3, "scaffold": 0}[decoder])
+    cam = torch.tensor([0.5, -1.0, -2.0])
+    idx = torch.arange(m.n_anchors)
+    spec = None if surfels == "none" else _spec(m, idx, snap=surfels == "amr+snap")
+    fused = m.decode(cam, surfels=lambda i: spec)
+    ref = _reference(m, cam, spec)
+    assert 0 < len(fused) < m.n_anchors * m.k  # some children dropped (opacity <= 0)
+    assert torch.equal(fused.child_index, ref[5])
+    assert torch.equal(fused.anchor_index, ref[5] // m.k)
+    for a, b in zip((fused.means, fused.quats, fused.scales, fused.opacities, fused.colors), ref[:5]):
+        torch.testing.assert_close(a, b, atol=2e-6, rtol=1e-5)
+    # gradients of one random linear function of every output, w.r.t. everything that trains
+    gen = torch.Generator().manual_seed(3)
+    weights = [torch.randn(t.shape, generator=gen) for t in ref[:5]]
+
+    def grads(outs):
+        params = [m.features, m.log_scale, m.offsets, m.base_color, *m.decoder.parameters()]
+        for p in params:
+            p.grad = None
+        sum((w * o).sum() for w, o in zip(weights, outs)).backward()
+        return [p.grad.clone() for p in params]
+
+    g_fused = grads((fused.means, fused.quats, fused.scales, fused.opacities, fused.colors))
+    g_ref = grads(_reference(m, cam, spec)[:5])
+    for a, b in zip(g_fused, g_ref):
+        torch.testing.assert_close(a, b, atol=1e-4, rtol=1e-4)
+
+
+def test_unshaped_gives_the_decoders_own_shape_under_amr():
+    m = _map()
+    cam = torch.tensor([0.5, -1.0, -2.0])
+    spec = _spec(m, torch.arange(m.n_anchors), snap=False)
+    fused = m.decode(cam, surfels=lambda i: spec)
+    plain = m.decode(cam)
+    sel = torch.arange(0, len(fused), 7)
+    q, s = fused.unshaped(sel)
+    torch.testing.assert_close(q, plain.quats[sel])
+    torch.testing.assert_close(s, plain.scales[sel])
+    planar = spec.planar[fused.anchor_index]
+    assert torch.all(fused.scales[planar][:, 2] == spec.eps)  # the surfels themselves are flat
+    # L_morph's gradient reaches the decoder through unshaped()
+    s.sum().backward()
+    assert m.decoder.cov[-1].weight.grad.abs().sum() > 0
+
+
+def test_child_head_gradients_match_finite_differences_with_surfels():
+    from ggfslam.gaussians.child_head import child_head
+
+    g = torch.Generator().manual_seed(5)
+    M, k = 5, 3
+    d = dict(dtype=torch.float64)
+    raw_o = (0.5 + torch.rand(M, k, generator=g, **d)) * torch.tensor([1.0, -1.0, 1.0], **d)  # one slot dropped
+    raw_c, raw_cov = torch.randn(M, k, 3, generator=g, **d), torch.randn(M, k, 7, generator=g, **d)
+    raw_cov[..., 3] += 2.0  # away from the (w, z) = 0 singularity
+    offsets, base = torch.randn(M, k, 3, generator=g, **d), torch.randn(M, 3, generator=g, **d)
+    log_scale = torch.full((M, 3), -2.0, **d) + 0.1 * torch.randn(M, 3, generator=g, **d)
+    anchors = torch.randn(M, 3, generator=g, **d)
+    n = torch.nn.functional.normalize(torch.randn(M, 3, generator=g, **d), dim=1)
+    # radius between the two tangential scales' ranges, so both branches of max(s, r) are met away from the kink
+    spec = SurfelSpec(torch.tensor([True, False, True, True, False]), n, quat_z_to(n), anchors + 0.1,
+                      torch.full((M,), 0.06, **d), 1e-4, True)
+    ins = [t.requires_grad_() for t in (raw_o, raw_c, raw_cov, offsets, log_scale, base)]
+
+    def f(ro, rc, rv, off, ls, bc):
+        out = child_head(ro, rc, rv, anchors, ls, off, bc, torch.arange(M), spec)
+        return torch.cat([t.flatten() for t in out[:5]])
+
+    assert torch.autograd.gradcheck(f, ins, eps=1e-6, atol=1e-6)
