@@ -10,11 +10,17 @@ noise-free mesh depth where the sequence has it) and normal error (degrees) over
 iterations and iterations/s, anchors, Gaussians, wall seconds (whole run, outputs included), peak RSS (MiB)
 and RSS sampled every 100 frames (memory against sequence length).
 
+``--baseline`` runs every sequence a second time with the settings ggfslam had before the map became a
+product (``LEGACY``: 320 px training, 100 steps per keyframe and 300 final ones, Scaffold-GS's view-dependent
+decoders), side by side with the current defaults; both are scored the same way (all frames, estimated poses,
+the sequence's resolution unless ``--set mapping.eval_width=...``).
+
 ``--throughput`` adds the mapper's steps/s on the procedural room at ``--throughput-width`` (default 320x240)
 with keyframes added (ground-truth poses) until about ``--throughput-gaussians`` (default 100k) Gaussians
-keep a positive opacity after a 20-step warm-up: the issue's ">= 10 iterations/s at 320x240 with ~100k
-Gaussians" figure. Reported: anchors, candidate children (anchors x k, all decoded every step), Gaussians
-with positive opacity at the start and end of the timed steps, and those in view (rasterized) per keyframe.
+keep a positive opacity after a 20-step warm-up. Measured per kind of step: whole images at the training size,
+crops of half the width and height (``mapping.crop=0.5``) and whole images at half the size (coarse steps).
+Reported: anchors, candidate children (anchors x k), Gaussians with positive opacity, those in view of a whole
+image, and per kind of step the steps/s, ms per step and pixels per step.
 
 One JSON document goes to stdout; progress goes to stderr.
 
@@ -58,7 +64,16 @@ def _run_one(raw: dict, out_dir: str) -> dict:
         "run_seconds": total, "wall_seconds_tracking_and_mapping": system["wall_seconds"],
         "peak_rss_mb": system["peak_rss_mb"], "rss_mb_by_frame": system["rss_mb_by_frame"],
         "concurrent": cfg.mapping.concurrent,
+        "ply_psnr": mp["ply_fidelity"]["psnr_ply"], "ply_psnr_exposed": mp["ply_fidelity"]["psnr_ply_exposed"],
+        "ply_map_psnr": mp["ply_fidelity"]["psnr_map"], "ply_keyframes": mp["ply_fidelity"]["keyframes"],
+        "wall_seconds_outputs": system["stages"].get("map_outputs", {}).get("seconds"),
     }
+
+
+LEGACY = ["mapping.train_width=320", "mapping.iterations_per_keyframe=100", "mapping.iterations_per_frame=0",
+          "mapping.final_iterations=300", "mapping.view_dependent=true", "mapping.sh_degree=0",
+          "mapping.coarse_fraction=0", "mapping.crop=1.0", "mapping.init_opacity=0.1", "mapping.n_offsets=10"]
+"""The mapping settings before the map became a product (2026-11-26 defaults)."""
 
 
 def throughput(width: int, target: int, spacing: int, steps: int = 60, overrides: list[str] | None = None) -> dict:
@@ -93,13 +108,24 @@ def throughput(width: int, target: int, spacing: int, steps: int = 60, overrides
         g, _ = m._decode_view(poses[k], m.intr)
         visible.append(len(g))
     before = m.n_gaussians()
-    t0 = time.perf_counter()
-    m.train(steps)
-    dt = time.perf_counter() - t0
+    kinds = {}
+    ids = sorted(poses)
+    i = m.intr
+    for kind, (level, frac) in {"whole": (0, 1.0), "crop_half": (0, 0.5), "coarse": (1, 1.0)}.items():
+        w, h = (i.width, i.height) if level == 0 else (m.store.level_intrinsics(1).width,
+                                                          m.store.level_intrinsics(1).height)
+        cw, ch = int(round(frac * w)), int(round(frac * h))
+        t0 = time.perf_counter()
+        for s in range(steps):
+            crop = None if frac >= 1 else (int(m.rng.integers(w - cw + 1)), int(m.rng.integers(h - ch + 1)), cw, ch)
+            m.step(ids[s % len(ids)], level, crop)
+        dt = time.perf_counter() - t0
+        kinds[kind] = {"iterations_per_s": steps / dt, "ms_per_iteration": 1000 * dt / steps, "pixels": cw * ch}
     return {"resolution": f"{width}x{height}", "keyframe_spacing": spacing, "keyframes": kf, "anchors": m.map.n_anchors,
             "children": m.map.n_anchors * m.map.k, "gaussians_at_start": before, "gaussians": m.n_gaussians(),
-            "gaussians_in_view_mean": float(sum(visible) / len(visible)),
-            "steps": steps, "iterations_per_s": steps / dt, "ms_per_iteration": 1000 * dt / steps}
+            "gaussians_in_view_mean": float(sum(visible) / len(visible)), "steps": steps, "kinds": kinds,
+            "iterations_per_s": kinds["whole"]["iterations_per_s"],
+            "ms_per_iteration": kinds["whole"]["ms_per_iteration"]}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -110,6 +136,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                     help="config override applied to every sequence (repeatable)")
     ap.add_argument("--keep", metavar="DIR", help="keep the run directories under DIR (default: discarded)")
+    ap.add_argument("--baseline", action="store_true",
+                    help="also run every sequence with the settings before this release (LEGACY), side by side")
     ap.add_argument("--throughput", action="store_true", help="also measure the mapper's iterations/s")
     ap.add_argument("--throughput-width", type=int, default=320)
     ap.add_argument("--throughput-gaussians", type=int, default=100_000)
@@ -122,21 +150,28 @@ def main(argv: list[str] | None = None) -> int:
     report, stdout = start_report("mapping", args.overrides)
     scratch = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="bench_mapping-"))
     ready, failed = prepared_sequences(args.sequences, args.overrides, report)
+    variants = {"current": []} | ({"legacy": LEGACY} if args.baseline else {})
     for spec, raw in ready:
-        out = scratch / str(raw.get("name", "run")).replace("/", "_")
-        log(f"{spec} -> {out}")
-        row = {"sequence": spec, "name": raw.get("name", "run")}
-        row.update(guarded_run(spec, _run_one, raw, str(out)))
-        failed |= "error" in row
-        if "error" not in row:
-            log(f"  PSNR {row['psnr']:.2f} dB, depth L1 {row['depth_l1_cm']:.2f} cm, "
-                f"{row['mapping_iterations_per_s']:.1f} it/s, run {row['run_seconds']:.0f} s")
-        report["runs"].append(row)
+        for variant, extra in variants.items():
+            from ggfslam.config import apply_overrides
+
+            cfg = apply_overrides(raw, extra + list(args.overrides))  # the user's --set still wins
+            out = scratch / f"{raw.get('name', 'run')}-{variant}".replace("/", "_")
+            log(f"{spec} ({variant}) -> {out}")
+            row = {"sequence": spec, "name": raw.get("name", "run"), "settings": variant}
+            row.update(guarded_run(spec, _run_one, cfg, str(out)))
+            failed |= "error" in row
+            if "error" not in row:
+                log(f"  PSNR {row['psnr']:.2f} dB at {row['eval_resolution']}, depth L1 {row['depth_l1_cm']:.2f} cm, "
+                    f"PLY {row['ply_psnr']:.2f} dB vs map {row['ply_map_psnr']:.2f} dB, "
+                    f"{row['mapping_iterations_per_s']:.1f} it/s, run {row['run_seconds']:.0f} s")
+            report["runs"].append(row)
     if args.throughput:
         log(f"throughput at {args.throughput_width} px, ~{args.throughput_gaussians} Gaussians")
         report["throughput"] = in_fresh_process(throughput, args.throughput_width, args.throughput_gaussians,
                                                   args.throughput_spacing, 60, args.overrides)
-        log(f"  {report['throughput']['iterations_per_s']:.1f} it/s")
+        for kind, r in report["throughput"]["kinds"].items():
+            log(f"  {kind}: {r['iterations_per_s']:.1f} it/s ({r['pixels']} px a step)")
     return finish_report(report, stdout, scratch, bool(args.keep), failed)
 
 

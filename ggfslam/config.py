@@ -255,6 +255,8 @@ class MappingConfig(_Section):
     sh_degree: int = 1
     """View-dependent colour as real spherical harmonics of this degree (0-3), decoded per child from the anchor's
     feature: gaussians.ply carries them, so standard viewers show the map as ggfslam renders it."""
+    init_opacity: float = 0.1
+    """Opacity every child starts with (the opacity decoder's initial bias)."""
     view_dependent: bool = False
     """Scaffold-GS's decoders instead: opacity, shape and colour MLPs all read the viewing direction and distance
     (sh_degree is then usually 0). gaussians.ply can only approximate such a map (each anchor decoded from its
@@ -265,20 +267,21 @@ class MappingConfig(_Section):
     """Upper bound on the number of anchors (growing stops there)."""
     train_width: int | None = None
     """Training images are downscaled to this width (aspect kept; never upscaled); None = the sequence's own."""
-    coarse_fraction: float = 0.0
+    coarse_fraction: float = 0.5
     """Share of the steps that train whole images at half the training size (coarse-to-fine; only where that half
     is at least ``coarse_min_width`` wide)."""
     coarse_min_width: int = 200
     """Narrowest half-size image worth a coarse step."""
     crop: float = 1.0
     """Steps at the training size train a random crop of this fraction of the width and height (1 = whole)."""
-    iterations_per_keyframe: int = 100
+    iterations_per_keyframe: int = 25
     """Optimization steps after each new keyframe, at least (see ``iterations_per_frame``)."""
-    iterations_per_frame: float = 0.0
+    iterations_per_frame: float = 3.0
     """Steps per input frame: a new keyframe gets this many per frame since the keyframe before it, when that is
     more than ``iterations_per_keyframe`` (a budget that follows the sequence, not its keyframe count)."""
     window: int = 8
-    """Keyframes trained after a new one: the new one (every other step) plus a random sample of older ones."""
+    """Keyframes trained after a new one: the new one (every other step), ``window - 1`` covisible ones (whose
+    anchors fill most of its view) and keyframes drawn by their current photometric error, alternately."""
     final_iterations: int = 300
     """Refinement steps over all keyframes after the last frame (0 = none)."""
     idle_training: bool = True
@@ -355,6 +358,8 @@ class MappingConfig(_Section):
                 raise ValueError(f"{name} must be >= 0")
         if not 0 <= self.lambda_ssim <= 1:
             raise ValueError("lambda_ssim must be in [0, 1]")
+        if not 0 < self.init_opacity < 1:
+            raise ValueError("init_opacity must be in (0, 1)")
         if not 0 <= self.sh_degree <= 3:
             raise ValueError("sh_degree must be in 0..3")
         return self

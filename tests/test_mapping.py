@@ -138,10 +138,44 @@ def test_losses_on_hand_made_inputs():
     assert float(normal_loss(tilted, n)) == pytest.approx(1 - np.cos(0.5), abs=1e-6)
 
 
+def test_keyframe_budget_follows_the_frames_between_keyframes(tmp_path, sequence):
+    m = _mapper(sequence, {}, iterations_per_keyframe=7, iterations_per_frame=2.5)
+    f = sequence[0]
+    for kf, fi in enumerate((0, 2, 12)):
+        m.store.add(kf, fi, f.rgb, f.depth)
+    assert [m.keyframe_budget(k) for k in (0, 1, 2)] == [7, 7, 25]  # at least 7; 2.5 per frame since the last
+
+
+def test_compiled_normal_loss_matches_the_torch_chain():
+    """normal_loss_from_depth == normal_loss(normals_from_depth(depth)) in value and gradient, holes included."""
+    from ggfslam.mapping.loss_kernels import normal_loss_from_depth
+    from ggfslam.render.normals import normals_from_depth
+    from ggfslam.render.types import Intrinsics
+
+    g = torch.Generator().manual_seed(0)
+    intr = Intrinsics(40.0, 42.0, 15.3, 11.7, 32, 24)
+    v, u = torch.meshgrid(torch.arange(24.0), torch.arange(32.0), indexing="ij")
+    depth = (2.0 + 0.02 * u - 0.03 * v + 0.01 * torch.rand(24, 32, generator=g)).double()
+    depth[5:8, 10:13] = 0.0  # a hole
+    depth[15:, 20:] += 0.4  # a step
+    sensor = (2.0 + 0.02 * u - 0.01 * v).double()
+    sensor[0:3] = 0.0
+    gt = normals_from_depth(sensor, intr.fx, intr.fy, intr.cx, intr.cy)
+    a = depth.clone().requires_grad_()
+    ref = normal_loss(normals_from_depth(a, intr.fx, intr.fy, intr.cx, intr.cy), gt)
+    ref.backward()
+    b = depth.clone().requires_grad_()
+    fused = normal_loss_from_depth(b, gt, intr)
+    fused.backward()
+    assert float(ref.detach()) > 0.01
+    torch.testing.assert_close(fused, ref, atol=1e-12, rtol=1e-10)
+    torch.testing.assert_close(b.grad, a.grad, atol=1e-12, rtol=1e-9)
+
+
 def test_concurrent_worker_trains_every_keyframe(sequence):
     ds, gt = sequence, sequence.gt_poses
     poses = {}
-    m = _mapper(ds, poses, iterations_per_keyframe=5, idle_training=False)
+    m = _mapper(ds, poses, iterations_per_keyframe=5, iterations_per_frame=0.1, idle_training=False)
     threads = torch.get_num_threads()
     w = MappingWorker(m, concurrent=True, threads=1)
     assert torch.get_num_threads() == 1  # tracking's share while both run

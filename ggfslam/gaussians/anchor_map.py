@@ -53,7 +53,7 @@ class AnchorMap(nn.Module):
     """Anchors and the MLP decoders of their children (see the module docstring for the fields)."""
 
     def __init__(self, voxel_size: float, n_offsets: int = 10, feature_dim: int = 32, hidden: int = 32,
-                 view_dependent: bool = False, seed: int = 0, sh_degree: int = 1):
+                 view_dependent: bool = False, seed: int = 0, sh_degree: int = 1, init_opacity: float = 0.1):
         super().__init__()
         if not voxel_size > 0:
             raise ValueError(f"voxel_size must be > 0, got {voxel_size}")
@@ -70,7 +70,7 @@ class AnchorMap(nn.Module):
         self.log_scale = nn.Parameter(torch.zeros(0, 3))  # [A, 3]
         self.offsets = nn.Parameter(torch.zeros(0, self.k, 3))  # [A, k, 3]
         self.base_color = nn.Parameter(torch.zeros(0, 3))  # [A, 3] logits
-        self.decoder = ChildDecoder(feature_dim, self.k, hidden, view_dependent, sh_degree)
+        self.decoder = ChildDecoder(feature_dim, self.k, hidden, view_dependent, sh_degree, init_opacity)
         self._keys = np.zeros(0, dtype=np.int64)  # sorted voxel keys of the anchors
         self._key_anchor = np.zeros(0, dtype=np.int64)  # anchor index of each sorted key
 
@@ -212,15 +212,16 @@ class AnchorMap(nn.Module):
 
     # --- decoding ----------------------------------------------------------------------------------
     @torch.no_grad()
-    def reach(self) -> torch.Tensor:
+    def reach(self, slack: float = 0.0) -> torch.Tensor:
         """Radius [A] (m) around each anchor that holds its children to 3 sigma: the farthest offset plus three
-        times the largest child scale (children's scales are at most ``l_v``)."""
+        times the largest child scale (children's scales are at most ``l_v``), plus ``slack`` times ``l_v``."""
         if self.n_anchors == 0:
             return torch.zeros(0)
         L = torch.exp(self.log_scale)  # [A, 3]
-        return (self.offsets * L[:, None, :]).norm(dim=2).amax(dim=1) + 3.0 * L.amax(dim=1)
+        return (self.offsets * L[:, None, :]).norm(dim=2).amax(dim=1) + (3.0 + slack) * L.amax(dim=1)
 
-    def visible_anchors(self, T_cw: np.ndarray, intr, near: float = 0.05, margin: float = 0.02) -> torch.Tensor:
+    def visible_anchors(self, T_cw: np.ndarray, intr, near: float = 0.05, margin: float = 0.02,
+                        reach: torch.Tensor | None = None) -> torch.Tensor:
         """Anchors [A] bool whose children can reach the image: the sphere of ``reach()`` around the anchor meets
         the view frustum (widened by ``margin`` of the image size). Anchors culled by their centre alone (as
         Scaffold-GS does) left children that project into the image untrained and unseen in training, but drawn
@@ -230,7 +231,7 @@ class AnchorMap(nn.Module):
         R = torch.from_numpy(T_cw[:3, :3].astype(np.float32))
         t = torch.from_numpy(T_cw[:3, 3].astype(np.float32))
         pc = self.anchors @ R.T + t  # [A, 3] camera frame
-        r = self.reach()  # [A]
+        r = self.reach() if reach is None or len(reach) != self.n_anchors else reach  # [A]
         z = pc[:, 2]
         ahead = z - r  # the sphere's nearest depth
         zs = ahead.clamp_min(1e-6)

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -62,7 +63,7 @@ class ChildDecoder(nn.Module):
     """Opacity, colour and covariance MLPs shared by all anchors."""
 
     def __init__(self, feature_dim: int = 32, k: int = 10, hidden: int = 32, view_dependent: bool = False,
-                 sh_degree: int = 1):
+                 sh_degree: int = 1, init_opacity: float = 0.1):
         super().__init__()
         if not 0 <= sh_degree <= 3:
             raise ValueError(f"sh_degree must be 0-3, got {sh_degree}")
@@ -80,7 +81,7 @@ class ChildDecoder(nn.Module):
             b = self.cov[-1].bias.view(k, 7)
             b.zero_()
             b[:, 3] = 1.0
-            self.opacity[-1].bias.fill_(0.1)  # tanh(0.1): every child starts faintly visible
+            self.opacity[-1].bias.fill_(float(np.arctanh(init_opacity)))  # every child starts visible
 
     def raw(self, anchors: torch.Tensor, features: torch.Tensor, cam_center: torch.Tensor | None = None
             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

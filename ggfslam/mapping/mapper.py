@@ -41,7 +41,8 @@ from ggfslam.geometry.depth import backproject, transform_points
 from ggfslam.geometry.se3 import invert, rotation_angle
 from ggfslam.ggf import GeometricGaussianField, planarity_colors
 from ggfslam.mapping.keyframe_store import KeyframeStore, scaled_intrinsics
-from ggfslam.mapping.losses import depth_loss, normal_loss, photometric_loss
+from ggfslam.mapping.loss_kernels import normal_loss_from_depth
+from ggfslam.mapping.losses import depth_loss, photometric_loss
 from ggfslam.render.api import rasterize
 from ggfslam.render.types import Intrinsics, RenderOutput, RenderSettings
 
@@ -73,7 +74,7 @@ class Mapper:
         # coarse-to-fine only where half the training size still has detail to learn from
         self.coarse_levels = cfg.coarse_fraction > 0 and self.intr.width >= 2 * cfg.coarse_min_width
         self.map = AnchorMap(cfg.voxel_size, cfg.n_offsets, cfg.feature_dim, cfg.hidden, cfg.view_dependent, seed,
-                             cfg.sh_degree)
+                             cfg.sh_degree, cfg.init_opacity)
         self.density = DensityControl(self.map, cfg.grow_grad_threshold, cfg.prune_min_opacity,
                                       cfg.density_min_visits, cfg.max_anchors)
         self.exposure = nn.Parameter(torch.zeros(0, 6))  # [E, 6]: log gain (3), offset (3) per keyframe
@@ -86,7 +87,9 @@ class Mapper:
         self.train_seconds = 0.0
         self.grown = self.pruned = 0
         self.last_losses: dict[str, float] = {}
+        self.kf_loss: dict[int, float] = {}  # each keyframe's photometric loss when it was last trained
         self.view_sink: ViewSink | None = None  # not part of the map's state (checkpoints)
+        self._reach_cache: tuple | None = None
         self.lock = threading.RLock()
 
     def _make_optimizer(self) -> torch.optim.Adam:
@@ -229,25 +232,46 @@ class Mapper:
         return max(c.iterations_per_keyframe, int(round(c.iterations_per_frame * frames)))
 
     def train(self, n: int, focus: int | None = None, stop: threading.Event | None = None) -> None:
-        """n optimization steps; with ``focus`` every other step is on that keyframe, the rest on a window.
+        """n optimization steps. With ``focus`` every other step is on that keyframe and the others alternate
+        between its covisible keyframes (``window - 1`` of them, those whose anchors fill most of its view) and
+        keyframes drawn by their current error; without, every step is drawn by error (``_by_error``).
         A set ``stop`` event ends the loop after the current step."""
         ids = sorted(self.anchor_poses)  # the seeded keyframes (a stored one may still wait in the queue)
         if not ids or n <= 0:
             return
-        older = [k for k in ids if k != focus]
-        if focus is not None:
-            take = min(len(older), max(self.cfg.window - 1, 0))
-            window = list(self.rng.choice(older, size=take, replace=False)) if take else []
+        window = self._covisible(focus, self.cfg.window - 1) if focus is not None else []
         for it in range(n):
             if stop is not None and stop.is_set():
                 return
-            if focus is not None and (it % 2 == 0 or not window):
+            if focus is not None and (it % 2 == 0 or len(ids) == 1):
                 kf = focus
-            elif focus is not None:
-                kf = int(window[(it // 2) % len(window)])
+            elif focus is not None and window and (it // 2) % 2 == 0:
+                kf = window[(it // 4) % len(window)]
             else:
-                kf = int(ids[self.rng.integers(len(ids))])
+                kf = self._by_error(ids)
             self.step(kf, *self._step_view())
+
+    def _covisible(self, kf_id: int, n: int) -> list[int]:
+        """Up to n other keyframes whose anchors are most numerous in ``kf_id``'s view (most first)."""
+        if n <= 0 or kf_id not in self._poses and kf_id not in self.anchor_poses:
+            return []
+        T = self._poses.get(kf_id, self.anchor_poses.get(kf_id))
+        mask = self.map.visible_anchors(invert(T), self.intr, self.settings.near_plane, reach=self._reach())
+        src = self.map.source_kf[mask]
+        src = src[(src >= 0) & (src != kf_id)]
+        if len(src) == 0:
+            return []
+        ids, counts = torch.unique(src, return_counts=True)
+        order = torch.argsort(counts, descending=True, stable=True)[:n]
+        return [int(k) for k in ids[order] if int(k) in self.anchor_poses]
+
+    def _by_error(self, ids: list[int]) -> int:
+        """A keyframe drawn with probability proportional to its last photometric loss (never-trained ones count
+        as the worst): steps go where the map is furthest from the images, and keyframes whose region the shared
+        decoders have since drifted away from come back."""
+        worst = max(self.kf_loss.values(), default=1.0)
+        w = np.array([self.kf_loss.get(k, worst) for k in ids], np.float64) + 1e-6
+        return int(ids[self.rng.choice(len(ids), p=w / w.sum())])
 
     def _step_view(self) -> tuple[int, tuple[int, int, int, int] | None]:
         """(level, crop) of the next step: a share ``coarse_fraction`` of the steps see whole images at half the
@@ -273,10 +297,18 @@ class Mapper:
     def _decode_view(self, T_wc: np.ndarray, intr: Intrinsics, without_kf: int | None = None
                      ) -> tuple[DecodedGaussians, torch.Tensor]:
         """The children in view of a camera at T_wc [4, 4] (and the anchor mask [A] they come from)."""
-        mask = self.map.visible_anchors(invert(T_wc), intr, self.settings.near_plane)
+        mask = self.map.visible_anchors(invert(T_wc), intr, self.settings.near_plane, reach=self._reach())
         if without_kf is not None:
             mask &= self.map.source_kf != without_kf
         return self._decode(T_wc[:3, 3], mask), mask
+
+    def _reach(self) -> torch.Tensor:
+        """``AnchorMap.reach`` recomputed every 10 steps (or when anchors change) with a slack of one anchor scale:
+        Adam moves an offset by at most ~lr_offsets (0.01 scales) a step."""
+        key = (self.iteration // 10, self.map.layout_version, self.map.geometry_version)
+        if self._reach_cache is None or self._reach_cache[0] != key:
+            self._reach_cache = (key, self.map.reach(slack=1.0))
+        return self._reach_cache[1]
 
     def _refresh_field(self) -> None:
         """Bring the field's anchor geometry up to date with the map (cameras orient the normals)."""
@@ -327,7 +359,7 @@ class Mapper:
             loss = l_photo + c.lambda_depth * l_depth
             l_normal = torch.zeros(())
             if c.lambda_normal > 0:
-                l_normal = normal_loss(out.normals, torch.from_numpy(np.ascontiguousarray(normals)))
+                l_normal = normal_loss_from_depth(out.depth, torch.from_numpy(np.ascontiguousarray(normals)), intr)
                 loss = loss + c.lambda_normal * l_normal
             if c.lambda_scale > 0:
                 vol = g.scales.prod(dim=1).mean() / self.map.voxel_size ** 3
@@ -350,6 +382,8 @@ class Mapper:
             self.train_seconds += time.perf_counter() - t0
             self.last_losses = {"loss": loss.item(), "photo": l_photo.item(), "depth": l_depth.item(),
                                 "normal": l_normal.item(), "morph": float(l_morph.detach())}
+            if level == 0 and crop is None:  # comparable across keyframes: whole images at the training size
+                self.kf_loss[kf_id] = self.last_losses["photo"]
             return self.last_losses
 
     def _expose(self, color: torch.Tensor, kf_id: int | None) -> torch.Tensor:
@@ -524,6 +558,7 @@ class Mapper:
                     "poses": {k: v.copy() for k, v in self._poses.items()},
                     "rng": self.rng.bit_generator.state, "iteration": self.iteration,
                     "train_seconds": self.train_seconds, "grown": self.grown, "pruned": self.pruned,
+                    "kf_loss": dict(self.kf_loss),
                     "generator": self.map.gen.get_state(),
                     "ggf": self.ggf.state() if self.ggf is not None else None}
 
@@ -533,6 +568,7 @@ class Mapper:
 
         with self.lock:
             self.map = AnchorMap.from_state(st["map_extra"], st["map"])
+            self._reach_cache = None
             self.map.gen.set_state(st["generator"])
             self.exposure = nn.Parameter(st["exposure"].clone())
             self.exposure_row = dict(st["exposure_row"])
@@ -546,6 +582,7 @@ class Mapper:
             self.rng.bit_generator.state = st["rng"]
             self.iteration, self.train_seconds = st["iteration"], st["train_seconds"]
             self.grown, self.pruned = st["grown"], st["pruned"]
+            self.kf_loss = {int(k): float(v) for k, v in st.get("kf_loss", {}).items()}
             if self.ggf is not None:
                 if st.get("ggf") is None:
                     raise ValueError("checkpoint has no Geometric-Gaussian Field state but ggf.enabled is true: "
