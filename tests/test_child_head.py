@@ -42,7 +42,7 @@ def _reference(m: AnchorMap, cam, spec: SurfelSpec | None):
     if spec.snap:  # the SH colour is seen along the direction to where the child ends up
         raw_c = m.decoder.raw(m.anchors, m.features)[1]  # [A, k, B, 3]
         slot = g.child_index % m.k
-        colors = m.decoder._color(raw_c[a, slot][:, None], m.base_color[a], mu[:, None], cam)[:, 0]
+        colors = m.decoder._color(raw_c[a, slot][:, None], m.base_color[a, slot][:, None], mu[:, None], cam)[:, 0]
     return mu, q, s, g.opacities, colors, g.child_index
 
 
@@ -103,7 +103,7 @@ def test_child_head_gradients_match_finite_differences_with_surfels():
     raw_o = (0.5 + torch.rand(M, k, generator=g, **d)) * torch.tensor([1.0, -1.0, 1.0], **d)  # one slot dropped
     raw_c, raw_cov = torch.randn(M, k, 3, generator=g, **d), torch.randn(M, k, 7, generator=g, **d)
     raw_cov[..., 3] += 2.0  # away from the (w, z) = 0 singularity
-    offsets, base = torch.randn(M, k, 3, generator=g, **d), torch.randn(M, 3, generator=g, **d)
+    offsets, base = torch.randn(M, k, 3, generator=g, **d), torch.randn(M, k, 3, generator=g, **d)
     log_scale = torch.full((M, 3), -2.0, **d) + 0.1 * torch.randn(M, 3, generator=g, **d)
     anchors = torch.randn(M, 3, generator=g, **d)
     n = torch.nn.functional.normalize(torch.randn(M, 3, generator=g, **d), dim=1)

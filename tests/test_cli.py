@@ -105,6 +105,37 @@ def test_render_writes_pngs_and_never_overwrites(synthetic_run, tmp_path):
     assert len(list((tmp_path / "p").glob("view_*_rgb.png"))) == len(np.loadtxt(out / "keyframes.txt", ndmin=2))
 
 
+def test_render_ply_shows_the_baked_file_as_the_map(synthetic_run, tmp_path):
+    """``render --ply`` draws gaussians.ply itself; at the keyframes it matches the map's own render (the file
+    carries the keyframes' median exposure, which on this sequence is the same for all), and metrics.json says
+    so too."""
+    import cv2
+
+    from ggfslam.eval.image import psnr
+
+    out, _ = synthetic_run
+    res = runner.invoke(app, ["render", str(out), "--ply", "--out", str(tmp_path / "ply")])
+    assert res.exit_code == 0, res.output
+    res = runner.invoke(app, ["render", str(out), "--out", str(tmp_path / "map")])
+    assert res.exit_code == 0, res.output
+    names = sorted(p.name for p in (tmp_path / "ply").glob("*_rgb.png"))
+    assert names and names == sorted(p.name for p in (tmp_path / "map").glob("*_rgb.png"))
+    for name in names:
+        a = cv2.imread(str(tmp_path / "ply" / name)).astype(np.float32) / 255
+        b = cv2.imread(str(tmp_path / "map" / name)).astype(np.float32) / 255
+        assert psnr(a, b) > 35.0, name
+    fid = json.loads((out / "metrics.json").read_text())["mapping"]["ply_fidelity"]
+    assert fid["keyframes"] == len(names)
+    assert abs(fid["psnr_ply"] - fid["psnr_map"]) < 0.5 and abs(fid["psnr_ply_exposed"] - fid["psnr_map"]) < 0.1
+    # a run folder without the file: one clear line naming it
+    (out / "gaussians.ply").rename(tmp_path / "kept.ply")
+    try:
+        bad = runner.invoke(app, ["render", str(out), "--ply", "--out", str(tmp_path / "ply2")])
+    finally:
+        (tmp_path / "kept.ply").rename(out / "gaussians.ply")
+    assert bad.exit_code == 2 and "gaussians.ply missing" in bad.output
+
+
 def test_resume_refuses_a_finished_run(synthetic_run):
     out, _ = synthetic_run
     res = runner.invoke(app, ["run", "--resume", "--out", str(out), "--no-progress"])

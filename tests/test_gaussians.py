@@ -60,7 +60,7 @@ def test_decoder_gradients_match_finite_differences():
     feats = torch.randn(M, 6, dtype=torch.float64, requires_grad=True)
     log_scale = torch.full((M, 3), -1.0, dtype=torch.float64, requires_grad=True)
     offsets = torch.randn(M, 3, 3, dtype=torch.float64, requires_grad=True)
-    base = torch.zeros(M, 3, dtype=torch.float64, requires_grad=True)
+    base = torch.zeros(M, 3, 3, dtype=torch.float64, requires_grad=True)
     cam = torch.tensor([0.1, -0.2, -4.0], dtype=torch.float64)
     with torch.no_grad():
         dec.opacity[-1].bias.fill_(2.0)  # every child kept, so the mask does not change under the probes

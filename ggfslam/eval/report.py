@@ -7,7 +7,7 @@ from rich.console import Console
 from rich.table import Table
 from rich.text import Text
 
-# (section, key, label, format)
+# (section, key, label, format); "{res}" in a label is the resolution the figure was measured at
 ROWS = [
     ("trajectory", "ate_rmse_cm", "ATE RMSE [cm] (all frames)", "{:.2f}"),
     ("trajectory", "ate_mean_cm", "ATE mean [cm]", "{:.2f}"),
@@ -18,14 +18,14 @@ ROWS = [
     ("tracking", "frames", "frames", "{:d}"),
     ("tracking", "frames_lost", "frames lost", "{:d}"),
     ("tracking", "fps", "tracking [frames/s]", "{:.1f}"),
-    ("rendering", "psnr", "PSNR [dB]", "{:.2f}"),
-    ("rendering", "ssim", "SSIM", "{:.3f}"),
+    ("rendering", "psnr", "PSNR [dB] at {res}", "{:.2f}"),
+    ("rendering", "ssim", "SSIM at {res}", "{:.3f}"),
     ("rendering", "lpips", "LPIPS", "{}"),
     ("rendering", "depth_l1_cm", "Depth L1 [cm]", "{:.2f}"),
     ("rendering", "normal_error_deg", "normal error [deg]", "{:.1f}"),
     ("rendering", "frames", "frames rendered", "{:d}"),
-    ("rendering", "width", "render width [px]", "{:d}"),
     ("rendering", "render_fps", "rendering [frames/s]", "{:.1f}"),
+    ("mapping", "ply_fidelity", "gaussians.ply / map PSNR at keyframes [dB]", "ply"),
     ("mapping", "iterations", "mapping iterations", "{:d}"),
     ("mapping", "iterations_per_s", "mapping [iterations/s]", "{:.1f}"),
     ("mapping", "anchors", "anchors", "{:d}"),
@@ -36,6 +36,9 @@ ROWS = [
 
 
 def _fmt(value, fmt: str) -> str:
+    if fmt == "ply":  # the baked file under each keyframe's exposure, against the map's own render
+        return (f"{_fmt(value.get('psnr_ply_exposed'), '{:.2f}')} / {_fmt(value.get('psnr_map'), '{:.2f}')} at "
+                f"{value.get('width')}x{value.get('height')}")
     if isinstance(value, float) and math.isnan(value):
         return "n/a"
     try:
@@ -49,9 +52,19 @@ def metrics_table(metrics: dict, title: str = "ggfslam metrics") -> Table:
     table = Table(title=Text(title) if title else None, show_header=True, header_style="bold")
     table.add_column("metric")
     table.add_column("value", justify="right")
-    for section, key, label, fmt in ROWS:
+    r = metrics.get("rendering", {})
+    res = f"{r.get('width', '?')}x{r.get('height', '?')}"
+    mp = metrics.get("mapping", {})
+    rows = list(ROWS)
+    if "train_width" in mp:
+        rows.insert(next(i for i, row in enumerate(rows) if row[1] == "iterations"),
+                    ("mapping", "train_width", "training resolution", "train"))
+    for section, key, label, fmt in rows:
         if key in metrics.get(section, {}):
-            table.add_row(Text(label), _fmt(metrics[section][key], fmt))  # Text: '[cm]' is not markup
+            value = metrics[section][key]
+            if fmt == "train":
+                value, fmt = f"{mp['train_width']}x{mp.get('train_height', '?')}", "{}"
+            table.add_row(Text(label.replace("{res}", res)), _fmt(value, fmt))  # Text: '[cm]' is not markup
     return table
 
 

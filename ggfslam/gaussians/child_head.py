@@ -3,7 +3,7 @@
 What it computes (per child j of anchor m; the plain-torch reference is ``ChildDecoder.reference`` followed by
 ``ggf.amr.surfel_shape``, and tests/test_child_head.py checks the two agree in values and gradients):
 - opacity ``o = tanh(raw_o)``; the child is kept only where ``o > 0`` (Scaffold-GS's mask, i.e. ``raw_o > 0``);
-- colour ``max(0, sigmoid(raw_c[0] + base_color[m]) + sum_b Y_b(d) raw_c[b])``: real spherical harmonics of the
+- colour ``max(0, sigmoid(raw_c[0] + base_color[m, j]) + sum_b Y_b(d) raw_c[b])``: real spherical harmonics of the
   direction d from the camera centre to the child (degree 0-3, 3DGS's basis), i.e. exactly what a 3DGS
   renderer computes from ``f_dc = (sigmoid(.) - 0.5) / C0`` and ``f_rest = raw_c[1:]`` (gaussians/bake.py);
 - scale ``s = exp(log_scale[m]) * sigmoid(raw_cov[:3])``, rotation ``q = raw_cov[3:7]`` (w, x, y, z; the
@@ -156,7 +156,7 @@ def head_forward(raw_o, raw_c, raw_cov, anchors, log_scale, offsets, base_color,
                     m, j, raw_cov, anchors, offsets, L0, L1, L2, pl, align, surface, normals, radius, eps, snap)
                 _view_basis(sh_deg, mx, my, mz, cam, Y)
                 for c in range(3):
-                    v = _sigmoid(raw_c[m, j, c] + base_color[m, c])
+                    v = _sigmoid(raw_c[m, j, c] + base_color[m, j, c])
                     for b in range(1, nb):
                         v += Y[b] * raw_c[m, j, 3 * b + c]
                     out_col[row, c] = v if v > 0.0 else 0.0  # 3DGS clamps SH colour at 0
@@ -185,7 +185,6 @@ def head_backward(raw_o, raw_c, raw_cov, anchors, offsets, log_scale, base_color
             L0, L1, L2 = np.exp(log_scale[m, 0]), np.exp(log_scale[m, 1]), np.exp(log_scale[m, 2])
             pl = planar[m] != 0
             gl0 = gl1 = gl2 = 0.0
-            gb0 = gb1 = gb2 = 0.0
             for j in range(k):
                 if not raw_o[m, j] > 0.0:
                     continue
@@ -200,7 +199,7 @@ def head_backward(raw_o, raw_c, raw_cov, anchors, offsets, log_scale, base_color
                     for b in range(nb):
                         GY[b] = 0.0
                 for c in range(3):
-                    dc = _sigmoid(raw_c[m, j, c] + base_color[m, c])
+                    dc = _sigmoid(raw_c[m, j, c] + base_color[m, j, c])
                     v = dc
                     for b in range(1, nb):
                         v += Y[b] * raw_c[m, j, 3 * b + c]
@@ -210,12 +209,7 @@ def head_backward(raw_o, raw_c, raw_cov, anchors, offsets, log_scale, base_color
                     for b in range(1, nb):
                         gr_c[m, j, 3 * b + c] = gc * Y[b]
                         GY[b] += gc * raw_c[m, j, 3 * b + c]
-                    if c == 0:
-                        gb0 += g
-                    elif c == 1:
-                        gb1 += g
-                    else:
-                        gb2 += g
+                    g_base[m, j, c] = g
                 gs0, gs1, gs2 = g_scales[row, 0], g_scales[row, 1], g_scales[row, 2]
                 gm0, gm1, gm2 = g_means[row, 0], g_means[row, 1], g_means[row, 2]
                 if sh_deg > 0 and dist > 0.0:  # d = (mu - cam) / |mu - cam|: (I - d d^T) / |.| grad_d
@@ -260,7 +254,6 @@ def head_backward(raw_o, raw_c, raw_cov, anchors, offsets, log_scale, base_color
                 gl2 += gs2 * L2 * sig2 + gm2 * offsets[m, j, 2] * L2
                 row += 1
             g_log_scale[m, 0], g_log_scale[m, 1], g_log_scale[m, 2] = gl0, gl1, gl2
-            g_base[m, 0], g_base[m, 1], g_base[m, 2] = gb0, gb1, gb2
 
 
 def _np(t: torch.Tensor, dtype: torch.dtype = torch.float32) -> np.ndarray:
@@ -306,7 +299,7 @@ class _ChildHead(torch.autograd.Function):
         gm, gq, gs = z(g_means, (g, 3)), z(g_quats, (g, 4)), z(g_scales, (g, 3))
         go, gc = z(g_opac, (g,)), z(g_col, (g, 3))
         gr_o, gr_c, gr_cov = np.zeros_like(ro), np.zeros_like(rc), np.zeros_like(rv)
-        g_off, g_ls, g_bc = np.zeros_like(off), np.empty_like(ls), np.empty_like(bc)
+        g_off, g_ls, g_bc = np.zeros_like(off), np.empty_like(ls), np.zeros_like(bc)
         head_backward(ro, rc, rv, an, off, ls, bc, *surf, cam, sh_deg, start, gm, gq, gs, go, gc, gr_o, gr_c, gr_cov,
                       g_off, g_ls, g_bc)
         return (torch.from_numpy(gr_o), torch.from_numpy(gr_c).reshape(c_shape), torch.from_numpy(gr_cov),
@@ -329,7 +322,7 @@ def child_head(raw_o: torch.Tensor, raw_c: torch.Tensor, raw_cov: torch.Tensor, 
                surfels: SurfelSpec | None = None, cam_center=None, sh_degree: int = 0):
     """The kept children of M anchors (see the module docstring): raw_o [M, k], raw_c [M, k, B, 3] or [M, k, 3 B]
     (B = (sh_degree + 1)^2: the DC logit, then the SH coefficients), raw_cov [M, k, 7], anchors [M, 3],
-    log_scale [M, 3], offsets [M, k, 3], base_color [M, 3] (logits), anchor_index [M] (global ids), the camera
+    log_scale [M, 3], offsets [M, k, 3], base_color [M, k, 3] (logits), anchor_index [M] (global ids), the camera
     centre [3] (world; the SH colour's viewpoint, unused for degree 0). Returns (means [G, 3], quats [G, 4],
     scales [G, 3], opacities [G], colours [G, 3], child_index [G] = anchor_index * k + slot, local [G] = the row m
     of each child's anchor); differentiable in every float input but anchors."""

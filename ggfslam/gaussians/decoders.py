@@ -12,7 +12,7 @@ lets every keyframe's view switch children on and off for itself; one explicit f
 fr3/cabinet the baked file scored ~3 dB under the map's own render at the keyframes, after matching exposure).
 Outputs per child (Scaffold-GS activations):
 - opacity ``tanh(.)``; children with opacity <= 0 are dropped from the render (Scaffold-GS's mask);
-- colour ``sigmoid(base_color_logit + .)`` plus the SH terms (see anchor_map.py for the per-anchor base colour);
+- colour ``sigmoid(base_color_logit + .)`` plus the SH terms (see anchor_map.py for the per-child base colour);
 - scale ``l_v * sigmoid(.)`` and rotation: a quaternion (w, x, y, z) normalised by the renderer, biased
   towards identity so the first renders are well-conditioned.
 """
@@ -110,7 +110,7 @@ class ChildDecoder(nn.Module):
     def _color(self, raw_c: torch.Tensor, base_color: torch.Tensor, means: torch.Tensor, cam_center) -> torch.Tensor:
         """Colour [M, k, 3] of children at means [M, k, 3] from raw_c [M, k, n_sh, 3], seen from cam_center
         (plain torch, differentiable in the means through the viewing direction too)."""
-        color = torch.sigmoid(raw_c[:, :, 0] + base_color[:, None, :])  # [M, k, 3]
+        color = torch.sigmoid(raw_c[:, :, 0] + base_color)  # [M, k, 3]
         if self.sh_degree == 0:
             return color
         from ggfslam.gaussians.explicit import sh_basis
@@ -127,13 +127,13 @@ class ChildDecoder(nn.Module):
         if self.view_dependent:
             raise ValueError("a view-dependent (Scaffold-GS) decoder has no SH colours")
         raw_c = self.raw(features.new_zeros(len(features), 3), features)[1]
-        return torch.sigmoid(raw_c[:, :, 0] + base_color[:, None, :]), raw_c[:, :, 1:]
+        return torch.sigmoid(raw_c[:, :, 0] + base_color), raw_c[:, :, 1:]
 
     def forward(self, anchors: torch.Tensor, features: torch.Tensor, log_scale: torch.Tensor,
                 offsets: torch.Tensor, base_color: torch.Tensor, cam_center: torch.Tensor,
                 anchor_index: torch.Tensor, surfels: SurfelSpec | None = None) -> DecodedGaussians:
         """Decode the children of M anchors: anchors [M, 3], features [M, F], log_scale [M, 3],
-        offsets [M, k, 3], base_color [M, 3] (logits), cam_center [3] (a view-dependent decoder also takes [M, 3],
+        offsets [M, k, 3], base_color [M, k, 3] (logits), cam_center [3] (a view-dependent decoder also takes [M, 3],
         one viewpoint per anchor), anchor_index [M]; ``surfels`` applies AMR to the children of planar anchors.
         Children with opacity <= 0 are dropped. The MLPs run in torch, the rest in the compiled child head."""
         raw_o, raw_c, raw_cov = self.raw(anchors, features, cam_center)

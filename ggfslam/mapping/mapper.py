@@ -47,6 +47,8 @@ from ggfslam.render.api import rasterize
 from ggfslam.render.types import Intrinsics, RenderOutput, RenderSettings
 
 PoseSource = Callable[[], dict[int, np.ndarray]]  # keyframe id -> T_wc [4, 4]
+GEOMETRY_WIDTH = 400
+"""Widest image anchors are seeded from (see ``Mapper.geo_level``)."""
 REFERENCE_EXPOSURE = -1
 """``exposure_kf`` of views without a keyframe of their own: the keyframes' median exposure."""
 
@@ -73,6 +75,13 @@ class Mapper:
         self.store = KeyframeStore(store_dir, self.intr, cfg.keyframe_cache)
         # coarse-to-fine only where half the training size still has detail to learn from
         self.coarse_levels = cfg.coarse_fraction > 0 and self.intr.width >= 2 * cfg.coarse_min_width
+        # anchors are seeded from, and the field observes, images at most GEOMETRY_WIDTH wide: sensor depth noise
+        # at 640 px would seed anchors in every voxel it scatters into (1.7x the anchors of the 320 px depth,
+        # whose 2x2 means are smoother), and the field's filters were tuned at that scale
+        self.geo_level = 0
+        while (self.intr.width >> (self.geo_level + 1)) >= GEOMETRY_WIDTH // 2 and \
+                (self.intr.width >> self.geo_level) > GEOMETRY_WIDTH:
+            self.geo_level += 1
         self.map = AnchorMap(cfg.voxel_size, cfg.n_offsets, cfg.feature_dim, cfg.hidden, cfg.view_dependent, seed,
                              cfg.sh_degree, cfg.init_opacity)
         self.density = DensityControl(self.map, cfg.grow_grad_threshold, cfg.prune_min_opacity,
@@ -114,7 +123,7 @@ class Mapper:
         """Anchors from a stored keyframe's depth (and landmarks [L, 3]) at its current pose; returns new anchors.
         A keyframe is seeded once: again is a no-op (a checkpoint taken while the worker seeds may list it as
         still queued)."""
-        item = self.store.get(kf_id)
+        item = self.store.get(kf_id, self.geo_level)
         with self.lock:
             if kf_id in self.anchor_poses:
                 return 0
@@ -129,7 +138,7 @@ class Mapper:
                 # anchor's T does not depend on whether it was created early or late in the sequence
                 new = np.arange(first_new, self.map.n_anchors)
                 for k in sorted(self.anchor_poses)[-self.cfg.window:] if added else []:
-                    prev = self.store.get(k)
+                    prev = self.store.get(k, self.geo_level)
                     self._observe(prev.rgb, prev.depth, self._poses.get(k, self.anchor_poses[k]), new)
             self.anchor_poses[kf_id] = T_wc.copy()
             if kf_id not in self.exposure_row:
@@ -137,7 +146,7 @@ class Mapper:
             return added
 
     def _seed_points(self, rgb: np.ndarray, depth: np.ndarray, T_wc: np.ndarray, landmarks: np.ndarray | None):
-        i, s = self.intr, self.cfg.depth_stride
+        i, s = self.store.level_intrinsics(self.geo_level), self.cfg.depth_stride
         P = backproject(depth[::s, ::s], i.fx / s, i.fy / s, (i.cx + 0.5) / s - 0.5, (i.cy + 0.5) / s - 0.5)
         valid = depth[::s, ::s] > 0
         pts = transform_points(T_wc, P[valid])  # [M, 3] world
@@ -157,7 +166,7 @@ class Mapper:
         """What a keyframe tells the anchors (AnchorMap's module docstring): its depth pixels (training
         resolution) sharpen the voxels' surface points; the anchors it sees count one observation and record
         the colour there. With ``anchors`` [M] only those are looked at and the surface points stay."""
-        i = self.intr
+        i = self.store.level_intrinsics(self.geo_level)
         valid = depth > 0
         # edge-preserving smoothing: sensor noise (~1-2 cm at 3 m) would otherwise spread a wall's points over
         # several voxel layers and make it look curved
