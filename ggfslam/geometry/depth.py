@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import numpy as np
+from numba import njit, prange
 
 
 def resize_depth_image(depth: np.ndarray, width: int, height: int, max_spread: float = 0.05) -> np.ndarray:
@@ -60,21 +61,35 @@ def project(pts_cam: np.ndarray, fx: float, fy: float, cx: float, cy: float) -> 
 def normals_from_depth(depth: np.ndarray, fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
     """Camera-frame unit normals [H, W, 3] from a depth map by central differences of back-projected points.
 
-    Normals face the camera (n . p < 0); pixels whose neighbours lack depth get (0, 0, 0).
+    Normals face the camera (n . p < 0); pixels whose neighbours lack depth get (0, 0, 0). Compiled (a keyframe
+    read from disk and every evaluated frame compute this; numpy took ~70 ms at 640x480).
     """
-    P = backproject(depth, fx, fy, cx, cy)  # [H, W, 3]
-    valid = depth > 0
-    n = np.zeros_like(P)
-    dx = P[1:-1, 2:] - P[1:-1, :-2]  # [H-2, W-2, 3]
-    dy = P[2:, 1:-1] - P[:-2, 1:-1]
-    c = np.cross(dx, dy)
-    norm = np.linalg.norm(c, axis=-1, keepdims=True)
-    ok = (
-        valid[1:-1, 2:] & valid[1:-1, :-2] & valid[2:, 1:-1] & valid[:-2, 1:-1] & valid[1:-1, 1:-1]
-        & (norm[..., 0] > 0)
-    )
-    c = np.where(ok[..., None], c / np.maximum(norm, 1e-20), 0.0)
-    flip = np.sum(c * P[1:-1, 1:-1], axis=-1) > 0
-    c[flip] *= -1
-    n[1:-1, 1:-1] = c
+    z = np.ascontiguousarray(depth, dtype=np.float64)
+    n = np.zeros(z.shape + (3,))
+    if z.shape[0] >= 3 and z.shape[1] >= 3:
+        _normals_kernel(z, float(fx), float(fy), float(cx), float(cy), n)
     return n
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _normals_kernel(z, fx, fy, cx, cy, n):
+    H, W = z.shape
+    for v in prange(1, H - 1):
+        for u in range(1, W - 1):
+            z0, zl, zr, zt, zb = z[v, u], z[v, u - 1], z[v, u + 1], z[v - 1, u], z[v + 1, u]
+            if not (z0 > 0 and zl > 0 and zr > 0 and zt > 0 and zb > 0):
+                continue
+            a0 = (u + 1 - cx) / fx * zr - (u - 1 - cx) / fx * zl
+            a1 = (v - cy) / fy * zr - (v - cy) / fy * zl
+            a2 = zr - zl
+            b0 = (u - cx) / fx * zb - (u - cx) / fx * zt
+            b1 = (v + 1 - cy) / fy * zb - (v - 1 - cy) / fy * zt
+            b2 = zb - zt
+            c0, c1, c2 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+            norm = np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+            if not norm > 0:
+                continue
+            c0, c1, c2 = c0 / norm, c1 / norm, c2 / norm
+            if c0 * (u - cx) / fx * z0 + c1 * (v - cy) / fy * z0 + c2 * z0 > 0:
+                c0, c1, c2 = -c0, -c1, -c2
+            n[v, u, 0], n[v, u, 1], n[v, u, 2] = c0, c1, c2
