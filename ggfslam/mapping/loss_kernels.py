@@ -109,3 +109,126 @@ def normal_loss_from_depth(depth: torch.Tensor, gt_normals: torch.Tensor, intr: 
     """Mean (1 - n . gt) over pixels where the normal of ``depth`` [H, W] (render/normals.py's rule) and
     ``gt_normals`` [H, W, 3] are both defined; differentiable in depth."""
     return _NormalLoss.apply(depth, gt_normals, intr)
+
+
+# --- photometric loss: (1 - l) L1 + l (1 - SSIM), fused -------------------------------------------------------
+# eval/image.py's ssim() is the plain-torch reference of the same math (11x11 Gaussian window, sigma 1.5, 'valid'
+# borders, C1 = 0.01^2, C2 = 0.03^2); tests/test_mapping.py checks value and gradient against it. In torch the
+# five filtered maps, the SSIM formula and their backward are ~25 ops and ~50 ms a step at 640x480; here one
+# separable filter pass each way along contiguous rows, and only the gradient w.r.t. the rendered image is formed.
+SSIM_SIZE, SSIM_SIGMA, SSIM_C1, SSIM_C2 = 11, 1.5, 0.01 ** 2, 0.03 ** 2
+
+
+def _ssim_taps() -> np.ndarray:
+    x = np.arange(SSIM_SIZE, dtype=np.float64) - SSIM_SIZE // 2
+    g = np.exp(-(x ** 2) / (2 * SSIM_SIGMA ** 2))
+    return g / g.sum()  # [11]
+
+
+@njit(cache=True, nogil=True, parallel=True, fastmath=FMA)
+def photo_forward(x, y, taps, c1, c2, hz, dS):
+    """x (render), y (image) [H, W*C] (rows of interleaved channels): returns (sum |x - y|, sum of the SSIM map over
+    the valid [Hv, Wv*C]); hz [5, H, Wv*C] (zeroed) receives the horizontal pass of x, y, xx, yy, xy, and
+    dS [3, Hv, Wv*C] dSSIM/d(mu_x, E[xx], E[xy]). Inner loops run along contiguous rows, so they vectorise."""
+    H, WC = x.shape
+    K = taps.shape[0]
+    Hv, Q = dS.shape[1], dS.shape[2]
+    C = (WC - Q) // (K - 1)
+    l1_rows = np.zeros(H)
+    for h in prange(H):
+        acc = 0.0
+        for p in range(WC):
+            acc += abs(x[h, p] - y[h, p])
+        l1_rows[h] = acc
+        for t in range(K):
+            k, off = taps[t], t * C
+            for q in range(Q):
+                a, b = x[h, q + off], y[h, q + off]
+                hz[0, h, q] += k * a
+                hz[1, h, q] += k * b
+                hz[2, h, q] += k * a * a
+                hz[3, h, q] += k * b * b
+                hz[4, h, q] += k * a * b
+    ssim_rows = np.zeros(Hv)
+    for i in prange(Hv):
+        z = np.zeros((5, Q), x.dtype)
+        for t in range(K):
+            k = taps[t]
+            for f in range(5):
+                for q in range(Q):
+                    z[f, q] += k * hz[f, i + t, q]
+        acc = 0.0
+        for q in range(Q):
+            m1, m2, e11, e22, e12 = z[0, q], z[1, q], z[2, q], z[3, q], z[4, q]
+            an, ad = 2 * m1 * m2 + c1, m1 * m1 + m2 * m2 + c1
+            bn, bd = 2 * (e12 - m1 * m2) + c2, (e11 - m1 * m1) + (e22 - m2 * m2) + c2
+            A, B = an / ad, bn / bd
+            acc += A * B
+            dS[0, i, q] = (2 * m2 * ad - an * 2 * m1) / (ad * ad) * B + A * (2 * m1 * bn - 2 * m2 * bd) / (bd * bd)
+            dS[1, i, q] = -A * bn / (bd * bd)
+            dS[2, i, q] = A * 2 / bd
+        ssim_rows[i] = acc
+    return l1_rows.sum(), ssim_rows.sum()
+
+
+@njit(cache=True, nogil=True, parallel=True, fastmath=FMA)
+def photo_backward(x, y, taps, dS, g_l1, g_ssim, vt, g_x):
+    """g_x [H, W*C] = g_l1 * sign(x - y) + g_ssim * dSSIM_sum/dx: the filters' adjoints applied to dS (vertical into
+    vt [3, H, Wv*C], zeroed, then horizontal), then the chain through mu_x = f*x, E[xx] = f*x^2, E[xy] = f*xy."""
+    H, WC = x.shape
+    K = taps.shape[0]
+    Hv, Q = dS.shape[1], dS.shape[2]
+    C = (WC - Q) // (K - 1)
+    for h in prange(H):
+        for i in range(max(0, h - K + 1), min(Hv - 1, h) + 1):
+            k = taps[h - i]
+            for f in range(3):
+                for q in range(Q):
+                    vt[f, h, q] += k * dS[f, i, q]
+    for h in prange(H):
+        G = np.zeros((3, WC), x.dtype)
+        for t in range(K):
+            k, off = taps[t], t * C
+            for f in range(3):
+                for q in range(Q):
+                    G[f, q + off] += k * vt[f, h, q]
+        for p in range(WC):
+            a, b = x[h, p], y[h, p]
+            d = a - b
+            sgn = 1.0 if d > 0 else (-1.0 if d < 0 else 0.0)
+            g_x[h, p] = g_l1 * sgn + g_ssim * (G[0, p] + 2 * a * G[1, p] + b * G[2, p])
+
+
+_TAPS = _ssim_taps()
+
+
+class _PhotoLoss(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, pred, gt, lambda_ssim):
+        H, W, C = pred.shape
+        x = pred.detach().contiguous().numpy().reshape(H, W * C)
+        y = gt.detach().to(pred.dtype).contiguous().numpy().reshape(H, W * C)
+        K = SSIM_SIZE
+        taps = _TAPS.astype(x.dtype)
+        hz = np.zeros((5, H, (W - K + 1) * C), x.dtype)
+        dS = np.empty((3, H - K + 1, (W - K + 1) * C), x.dtype)
+        l1_sum, ssim_sum = photo_forward(x, y, taps, SSIM_C1, SSIM_C2, hz, dS)
+        n1, n2 = x.size, dS[0].size
+        ctx.save = (x, y, taps, dS, n1, n2, lambda_ssim, pred.shape)
+        loss = (1 - lambda_ssim) * l1_sum / n1 + lambda_ssim * (1 - ssim_sum / n2)
+        return torch.tensor(loss, dtype=pred.dtype)
+
+    @staticmethod
+    def backward(ctx, grad):
+        x, y, taps, dS, n1, n2, lam, shape = ctx.save
+        g = float(grad)
+        vt = np.zeros((3, x.shape[0], dS.shape[2]), x.dtype)
+        g_x = np.empty_like(x)
+        photo_backward(x, y, taps, dS, g * (1 - lam) / n1, -g * lam / n2, vt, g_x)
+        return torch.from_numpy(g_x.reshape(shape)), None, None
+
+
+def photometric_loss_fused(pred: torch.Tensor, gt: torch.Tensor, lambda_ssim: float) -> torch.Tensor:
+    """``(1 - l) L1 + l (1 - SSIM)`` of a render ``pred`` [H, W, 3] against ``gt`` [H, W, 3] (both in [0, 1], CPU,
+    at least 11x11), compiled; differentiable in ``pred``."""
+    return _PhotoLoss.apply(pred, gt, float(lambda_ssim))

@@ -4,10 +4,20 @@ from __future__ import annotations
 import torch
 
 from ggfslam.eval.image import ssim
+from ggfslam.mapping.loss_kernels import SSIM_SIZE, photometric_loss_fused
 
 
 def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lambda_ssim: float = 0.2) -> torch.Tensor:
-    """``(1 - l) L1 + l (1 - SSIM)`` of images [H, W, 3] in [0, 1] (l = 0.2: the paper's 0.8 / 0.2)."""
+    """``(1 - l) L1 + l (1 - SSIM)`` of images [H, W, 3] in [0, 1] (l = 0.2: the paper's 0.8 / 0.2); the compiled
+    kernel on CPU, ``photometric_loss_reference`` elsewhere (and for images smaller than the SSIM window)."""
+    if (lambda_ssim > 0 and pred.device.type == "cpu" and pred.dtype in (torch.float32, torch.float64)
+            and min(pred.shape[0], pred.shape[1]) >= SSIM_SIZE):
+        return photometric_loss_fused(pred, gt, lambda_ssim)
+    return photometric_loss_reference(pred, gt, lambda_ssim)
+
+
+def photometric_loss_reference(pred: torch.Tensor, gt: torch.Tensor, lambda_ssim: float = 0.2) -> torch.Tensor:
+    """Plain-torch ``photometric_loss``: L1 and eval/image.py's differentiable SSIM."""
     l1 = (pred - gt).abs().mean()
     if lambda_ssim == 0:
         return l1

@@ -497,25 +497,6 @@ class Mapper:
             return None
         return self.exposure.detach().median(dim=0).values
 
-    def _fit_sh1(self, g: DecodedGaussians, centres: torch.Tensor, views: torch.Tensor, first: torch.Tensor
-                 ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Degree-1 SH colours of the baked children g over their anchors' observing keyframes views [A, V]."""
-        k = self.map.k
-        anchors, slot = g.anchor_index, g.child_index % k  # [G]
-        uniq, inv = torch.unique(anchors, return_inverse=True)  # [M], [G]
-        views = views[uniq].clone()  # [M, V]
-        views[:, 0] = first[uniq]  # the bake's own view (a fallback where no keyframe saw the anchor)
-        pos = self.map.anchors[uniq]  # [M, 3]
-        cols, dirs = [], []
-        for v in range(views.shape[1]):
-            c = centres[views[:, v].clamp_min(0)]  # [M, 3]
-            color = self.map.decode_dense(c, uniq)[4]  # [M, k, 3]
-            cols.append(color[inv, slot])  # [G, 3]
-            d = pos - c
-            dirs.append((d / d.norm(dim=1, keepdim=True).clamp_min(1e-9))[inv])
-        valid = (views >= 0)[inv]  # [G, V]
-        return fit_sh1(torch.stack(cols, 1), torch.stack(dirs, 1), valid)
-
     @torch.no_grad()
     def planarity(self) -> dict[str, torch.Tensor]:
         """Per anchor [A]: P_2D, P_prior, posterior flatness of its exported children (1 - s_min / s_mid),
