@@ -14,8 +14,13 @@ class DatasetError(GGFSlamError):
     def __init__(self, path: str | Path, message: str, line: int | None = None):
         self.path = str(path)
         self.line = line
+        self.reason = message
         where = f"{self.path}:{line}" if line is not None else self.path
         super().__init__(f"{where}: {message}")
+
+    def __reduce__(self):
+        # pickled by its own arguments, so it survives a worker process (benchmarks, batch runs) intact
+        return type(self), (self.path, self.reason, self.line)
 
 
 class ConfigError(GGFSlamError):

@@ -43,6 +43,15 @@ def test_missing_dataset_folder(tmp_path):
 
 # --- TUM -------------------------------------------------------------------------------------------------
 
+def test_dataset_error_survives_a_worker_process():
+    """Benchmarks and batch runs raise it in worker processes: it must pickle with its message intact."""
+    import pickle
+
+    e = pickle.loads(pickle.dumps(DatasetError("/data/x/rgb.txt", "malformed timestamp", line=7)))
+    assert isinstance(e, DatasetError) and str(e) == "/data/x/rgb.txt:7: malformed timestamp"
+    assert (e.path, e.line) == ("/data/x/rgb.txt", 7)
+
+
 def test_tum_missing_rgb_list(make_tum):
     root = make_tum()
     (root / "rgb.txt").unlink()
