@@ -39,7 +39,9 @@ def row_of(metrics: dict) -> dict:
     """The table's figures from a run's metrics.json (NaN where the run has none, e.g. no ground truth)."""
     nan = float("nan")
     r = metrics.get("rendering", {})
-    return {"psnr": r.get("psnr", nan), "ssim": r.get("ssim", nan), "depth_l1_cm": r.get("depth_l1_cm", nan),
+    res = f"{r['width']}x{r['height']}" if "width" in r and "height" in r else "-"
+    return {"psnr": r.get("psnr", nan), "resolution": res, "ssim": r.get("ssim", nan),
+            "depth_l1_cm": r.get("depth_l1_cm", nan),
             "ate_rmse_cm": metrics.get("trajectory", {}).get("ate_rmse_cm", nan),
             "tracking_fps": metrics.get("tracking", {}).get("fps", nan)}
 
@@ -80,7 +82,7 @@ def format_table(rows: list[dict]):
     """A rich Table of the rows, with the ATE change against each sequence's base (or first) variant."""
     from rich.table import Table
 
-    table = Table("sequence", "variant", "PSNR dB", "SSIM", "depth L1 cm", "ATE RMSE cm", "ATE vs base",
+    table = Table("sequence", "variant", "PSNR dB at WxH", "SSIM", "depth L1 cm", "ATE RMSE cm", "ATE vs base",
                   "tracking fps", "fps vs base", title="ablation (paper Table 5)")
     ref = {}
     for r in rows:
@@ -89,8 +91,8 @@ def format_table(rows: list[dict]):
             ref[r["sequence"]] = r
     for r in rows:
         b = ref[r["sequence"]]
-        table.add_row(r["sequence"], LABELS.get(r["variant"], r["variant"]), f"{r['psnr']:.2f}", f"{r['ssim']:.3f}",
-                      f"{r['depth_l1_cm']:.2f}", f"{r['ate_rmse_cm']:.2f}",
+        table.add_row(r["sequence"], LABELS.get(r["variant"], r["variant"]), f"{r['psnr']:.2f} at {r.get('resolution', '-')}",
+                      f"{r['ssim']:.3f}", f"{r['depth_l1_cm']:.2f}", f"{r['ate_rmse_cm']:.2f}",
                       f"{100 * (r['ate_rmse_cm'] / b['ate_rmse_cm'] - 1):+.0f}%", f"{r['tracking_fps']:.1f}",
                       f"{100 * r['tracking_fps'] / b['tracking_fps']:.0f}%")
     return table
