@@ -74,7 +74,7 @@ def render_run(run_dir: str | Path, frames: str = "keyframes", path: str | Path 
         kf_frames = dict(ckpt["kf_frames"])
 
         def render(T, exposure_kf):
-            return mapper.render(T, intr, exposure_kf=exposure_kf)
+            return mapper.render(T, intr, exposure_kf=exposure_kf, planar=False)
     if path is not None:
         _, poses = read_tum_trajectory(path)
         indices = np.arange(len(poses))

@@ -61,7 +61,7 @@ def mesh_geometry_metrics(mapper, mesh: o3d.geometry.TriangleMesh | str | Path, 
         ref = caster.cast(cam, A @ est_poses[i])["depth"].astype(np.float32)  # [H, W], 0 = no hit
         if dataset is not None:
             ref = np.where(resize_depth(dataset[i].depth, intr) > 0, ref, 0.0).astype(np.float32)
-        out = mapper.render(est_poses[i], intr)
+        out = mapper.render(est_poses[i], intr, planar=False)
         depth_l1.append(depth_l1_cm(out.depth.numpy(), ref))
         ref_n = normals_from_depth(ref, intr.fx, intr.fy, intr.cx, intr.cy)
         normal_err.append(normal_error_deg(out.normals.numpy(), ref_n))

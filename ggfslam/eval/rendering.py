@@ -42,7 +42,7 @@ def render_metrics(mapper, dataset, poses: np.ndarray, indices: np.ndarray, intr
         rgb, sensor_depth = resize_rgbd(frame.rgb, frame.depth, intr)
         depth = sensor_depth if gt_depth is None else resize_depth(gt_depth, intr)
         t0 = time.perf_counter()
-        out = mapper.render(poses[int(i)], intr, exposure_kf=int(e) if e >= 0 else None)
+        out = mapper.render(poses[int(i)], intr, exposure_kf=int(e) if e >= 0 else None, planar=False)
         render_s += time.perf_counter() - t0
         img = out.color.numpy()
         ref_normals = normals_from_depth(depth, intr.fx, intr.fy, intr.cx, intr.cy)
@@ -81,7 +81,7 @@ def ply_fidelity(mapper, baked) -> dict:
         if k not in poses:
             continue
         item = mapper.store.get(k)
-        own = mapper.render(poses[k], exposure_kf=k).color.numpy()
+        own = mapper.render(poses[k], exposure_kf=k, planar=False).color.numpy()
         ply = baked.render(poses[k], mapper.intr, mapper.settings).color
         exposed = mapper.reexpose(ply, k).clamp(0, 1).numpy()
         rows.append((psnr(own, item.rgb), psnr(ply.clamp(0, 1).numpy(), item.rgb), psnr(exposed, item.rgb)))

@@ -409,13 +409,14 @@ class Mapper:
     # --- rendering -----------------------------------------------------------------------------------
     @torch.no_grad()
     def render(self, T_wc: np.ndarray, intr: Intrinsics | None = None, exposure_kf: int | None = None,
-               without_kf: int | None = None) -> RenderOutput:
+               without_kf: int | None = None, planar: bool = True) -> RenderOutput:
         """Render the map from camera-to-world T_wc [4, 4] (training intrinsics by default); ``without_kf``
-        leaves out the anchors that keyframe seeded."""
+        leaves out the anchors that keyframe seeded; ``planar=False`` skips the planar-weight channel (``extras``),
+        which costs up to half the render on maps of many overlapping Gaussians."""
         intr = intr or self.intr
         with self.lock:
             g, _ = self._decode_view(T_wc, intr, without_kf)
-            p2d = self._planar_channel(g)
+            p2d = self._planar_channel(g) if planar else None
             out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, intr,
                             torch.from_numpy(invert(T_wc)).float(), extras=p2d, settings=self.settings)
             out.color = self._expose(out.color, exposure_kf).clamp(0, 1)
