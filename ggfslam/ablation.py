@@ -91,8 +91,8 @@ def format_table(rows: list[dict]):
             ref[r["sequence"]] = r
     for r in rows:
         b = ref[r["sequence"]]
-        table.add_row(r["sequence"], LABELS.get(r["variant"], r["variant"]), f"{r['psnr']:.2f} at {r.get('resolution', '-')}",
-                      f"{r['ssim']:.3f}", f"{r['depth_l1_cm']:.2f}", f"{r['ate_rmse_cm']:.2f}",
+        table.add_row(r["sequence"], LABELS.get(r["variant"], r["variant"]),
+                      f"{r['psnr']:.2f} at {r.get('resolution', '-')}", f"{r['ssim']:.3f}", f"{r['depth_l1_cm']:.2f}", f"{r['ate_rmse_cm']:.2f}",
                       f"{100 * (r['ate_rmse_cm'] / b['ate_rmse_cm'] - 1):+.0f}%", f"{r['tracking_fps']:.1f}",
                       f"{100 * r['tracking_fps'] / b['tracking_fps']:.0f}%")
     return table
