@@ -50,6 +50,7 @@ def render_run(run_dir: str | Path, frames: str = "keyframes", path: str | Path 
     from ggfslam.config import load_config
     from ggfslam.eval.rendering import nearest_keyframes
     from ggfslam.mapping.keyframe_store import scaled_intrinsics
+    from ggfslam.mapping.mapper import REFERENCE_EXPOSURE
     from ggfslam.rundir import CONFIG_FILE, GAUSSIANS_FILE, require_run_dir
 
     run_dir = require_run_dir(run_dir)
@@ -67,7 +68,6 @@ def render_run(run_dir: str | Path, frames: str = "keyframes", path: str | Path 
         def render(T, _exposure_kf):
             return baked.render(T, intr)
     else:
-        from ggfslam.mapping.mapper import REFERENCE_EXPOSURE
         from ggfslam.slam import load_mapper
 
         _, mapper, ckpt = load_mapper(run_dir)
@@ -95,7 +95,7 @@ def render_run(run_dir: str | Path, frames: str = "keyframes", path: str | Path 
         raise RunDirError(f"{folder}: {len(clash)} render(s) already there (e.g. {clash[0]}_rgb.png); pass "
                           "--overwrite or choose another --out")
     # a frame takes its nearest keyframe's exposure; a new path the keyframes' typical one
-    exposure = nearest_keyframes(indices, kf_frames) if path is None or ply else None
+    exposure = nearest_keyframes(indices, kf_frames) if path is None else None
     for j, (i, nm) in enumerate(zip(indices, names)):
         e = REFERENCE_EXPOSURE if exposure is None else int(exposure[j]) if exposure[j] >= 0 else None
         res = render(poses[int(i)], e)

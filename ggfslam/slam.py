@@ -271,11 +271,12 @@ def _map_outputs(config: Config, mapper, tracker, dataset, poses: np.ndarray, ru
     from ggfslam.mapping.outputs import write_map_ply, write_planarity_ply, write_rendered_mesh
 
     out = {"mapping": mapper.stats()}
-    out["mapping"]["ply_gaussians"] = write_map_ply(mapper, run_dir / GAUSSIANS_FILE)
+    g = mapper.bake_gaussians()  # once for both files (with view-dependent decoders it reads every keyframe)
+    out["mapping"]["ply_gaussians"] = write_map_ply(mapper, run_dir / GAUSSIANS_FILE, g)
+    if mapper.ggf is not None:
+        write_planarity_ply(mapper, run_dir / PLANARITY_FILE, g)
     baked = ExplicitGaussians.from_ply(run_dir / GAUSSIANS_FILE)  # what a viewer reads, read back as one does
     out["mapping"]["ply_fidelity"] = ply_fidelity(mapper, baked)
-    if mapper.ggf is not None:
-        write_planarity_ply(mapper, run_dir / PLANARITY_FILE)
     if config.mapping.mesh:
         kf_poses = [T for _, T in sorted(tracker.map.poses().items())]
         try:

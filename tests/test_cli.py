@@ -127,6 +127,11 @@ def test_render_ply_shows_the_baked_file_as_the_map(synthetic_run, tmp_path):
     fid = json.loads((out / "metrics.json").read_text())["mapping"]["ply_fidelity"]
     assert fid["keyframes"] == len(names)
     assert abs(fid["psnr_ply"] - fid["psnr_map"]) < 0.5 and abs(fid["psnr_ply_exposed"] - fid["psnr_map"]) < 0.1
+    # the file along a path of the user's (here the keyframes' own poses)
+    res = runner.invoke(app, ["render", str(out), "--ply", "--path", str(out / "keyframes.txt"),
+                              "--out", str(tmp_path / "ply_path")])
+    assert res.exit_code == 0, res.output
+    assert len(list((tmp_path / "ply_path").glob("view_*_rgb.png"))) == len(names)
     # a run folder without the file: one clear line naming it
     (out / "gaussians.ply").rename(tmp_path / "kept.ply")
     try:

@@ -1,17 +1,17 @@
-"""Baking the neural map into explicit Gaussians that any 3DGS renderer shows as the project renders them.
+"""Baking a view-dependent (Scaffold-GS, ``mapping.view_dependent: true``) map into explicit Gaussians.
 
-The child decoders (decoders.py) take the viewing direction and distance as inputs and were only ever
-trained on views from the keyframes. Decoding "from nowhere" (zero direction and distance) feeds them inputs
-they never saw: children come out about twice as large and more numerous, and a standard renderer of such a
-file scores ~10 dB below the project's own render. The bake therefore decodes each anchor from a real
-viewpoint: the centre of the **nearest keyframe that observed it** (its surface point projects inside that
-keyframe's image and agrees with that keyframe's depth), so each part of the map is baked as it looked in
-the closest training view, i.e. with the finest detail the map learned there.
+The default decoders read no view inputs and give SH colours, so ``Mapper.bake_gaussians`` writes their children
+as they are and needs nothing here. A view-dependent decoder also reads the viewing direction and distance, and
+was only ever trained on views from the keyframes: decoding it "from nowhere" (zero direction and distance)
+feeds it inputs it never saw, and a standard renderer of such a file scored ~10 dB below the project's own
+render. Such a map is therefore baked from real viewpoints: each anchor from the centre of the **nearest keyframe
+that observed it** (its surface point projects inside that keyframe's image and agrees with that keyframe's
+depth), so each part of the map is baked as it looked in the closest training view.
 
-With ``sh_degree=1`` the children's colours are additionally fitted, per child, over up to
-``max_views`` observing keyframes as a degree-1 spherical-harmonic function of the viewing direction
-(least squares with a small ridge on the degree-1 coefficients), which 3DGS files carry in ``f_rest_*``.
-Opacity, scale and rotation stay those of the nearest view (a PLY has no way to make them view-dependent).
+The children's colours are then fitted, per child, over up to ``max_views`` observing keyframes as a degree-1
+spherical-harmonic function of the viewing direction (least squares with a small ridge on the degree-1
+coefficients), which 3DGS files carry in ``f_rest_*``. Opacity, scale and rotation stay those of the nearest
+view (a PLY has no way to make them view-dependent).
 
 Conventions: poses camera-to-world ``T_wc`` [4, 4]; OpenCV camera axes; the view direction of an anchor is
 the unit vector from the camera centre to the anchor (world frame), as in the decoder and in 3DGS's SH.

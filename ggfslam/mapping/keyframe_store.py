@@ -132,7 +132,7 @@ class KeyframeStore:
                 self._put(kf_id, item)
         for lv in range(1, level + 1):
             if lv not in item.levels:
-                prev = item.levels.get(lv - 1, item) if lv > 1 else item
+                prev = item.levels[lv - 1] if lv > 1 else item
                 i = self.level_intrinsics(lv)
                 rgb, depth = resize_rgbd(prev.rgb, prev.depth, i)
                 item.levels[lv] = self._images(rgb, depth, item.frame_index, i)

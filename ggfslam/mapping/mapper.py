@@ -21,6 +21,7 @@ Every public method takes ``self.lock``, so a worker thread can train while anot
 """
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 from pathlib import Path
@@ -516,17 +517,17 @@ class Mapper:
                     "surface_n": self.map.surface_n.clone()}
 
     @torch.no_grad()
-    def export_planarity(self) -> DecodedGaussians:
-        """The exported children coloured by their anchor's P_2D (red = 2D, blue = 3D), as in the paper's Fig. 4."""
+    def export_planarity(self, baked: DecodedGaussians | None = None) -> DecodedGaussians:
+        """The baked children (``baked``, a ``bake_gaussians()`` result, or a new bake) coloured by their anchor's
+        P_2D (red = 2D, blue = 3D), as in the paper's Fig. 4; ``baked`` itself is left as it is."""
         with self.lock:
-            g = self.bake_gaussians()
             if self.ggf is None:
                 raise RuntimeError("the map has no Geometric-Gaussian Field (ggf.enabled is false)")
-            g.colors = planarity_colors(self.ggf.p2d()[g.anchor_index])
-            return g
+            g = self.bake_gaussians() if baked is None else baked
+            return dataclasses.replace(g, colors=planarity_colors(self.ggf.p2d()[g.anchor_index]), sh_rest=None)
 
     def n_gaussians(self) -> int:
-        """Children with positive opacity in the bake (each anchor seen from its nearest observing keyframe)."""
+        """Children in the bake (``bake_gaussians``): those with positive opacity."""
         return len(self.bake_gaussians())
 
     def stats(self) -> dict:

@@ -6,22 +6,25 @@ from typing import Callable
 
 import numpy as np
 
+from ggfslam.gaussians.decoders import DecodedGaussians
 from ggfslam.gaussians.explicit import ExplicitGaussians
 from ggfslam.gaussians.ply import write_gaussians_ply
 from ggfslam.mapping.tsdf import TSDFFusion, write_mesh
 from ggfslam.render.types import Intrinsics, RenderOutput
 
 
-def write_map_ply(mapper, path: str | Path) -> int:
-    """Bake the map (``Mapper.bake_gaussians``) into a standard 3DGS PLY; returns the Gaussian count."""
-    g = mapper.bake_gaussians()
+def write_map_ply(mapper, path: str | Path, baked: DecodedGaussians | None = None) -> int:
+    """The map baked (``baked``, or ``Mapper.bake_gaussians()`` now) into a standard 3DGS PLY; returns the Gaussian
+    count."""
+    g = mapper.bake_gaussians() if baked is None else baked
     write_gaussians_ply(path, g.means, g.quats, g.scales, g.opacities, g.colors, g.sh_rest)
     return len(g)
 
 
-def write_planarity_ply(mapper, path: str | Path) -> int:
-    """The same Gaussians as ``write_map_ply``, coloured by their anchor's P_2D (red = 2D, blue = 3D)."""
-    g = mapper.export_planarity()
+def write_planarity_ply(mapper, path: str | Path, baked: DecodedGaussians | None = None) -> int:
+    """The same Gaussians as ``write_map_ply`` (``baked``, or a new bake), coloured by their anchor's P_2D
+    (red = 2D, blue = 3D)."""
+    g = mapper.export_planarity(baked)
     write_gaussians_ply(path, g.means, g.quats, g.scales, g.opacities, g.colors)
     return len(g)
 
