@@ -13,6 +13,7 @@ import numpy as np
 import torch
 from numba import njit, prange
 
+from ggfslam.geometry.depth import pixel_differences
 from ggfslam.render.types import Intrinsics
 
 FMA = {"contract"}
@@ -38,12 +39,7 @@ def normal_loss_forward(z, gt, fx, fy, cx, cy, wdu, wdv):
             g0, g1, g2 = gt[v, u, 0], gt[v, u, 1], gt[v, u, 2]
             if not (z0 > 0 and zl > 0 and zr > 0 and zt > 0 and zb > 0) or (g0 == 0 and g1 == 0 and g2 == 0):
                 continue
-            xr, yr = _ray(u + 1, v, fx, fy, cx, cy)
-            xl, yl = _ray(u - 1, v, fx, fy, cx, cy)
-            xb, yb = _ray(u, v + 1, fx, fy, cx, cy)
-            xt, yt = _ray(u, v - 1, fx, fy, cx, cy)
-            a0, a1, a2 = zr * xr - zl * xl, zr * yr - zl * yl, zr - zl  # du
-            b0, b1, b2 = zb * xb - zt * xt, zb * yb - zt * yt, zb - zt  # dv
+            a0, a1, a2, b0, b1, b2 = pixel_differences(z, u, v, fx, fy, cx, cy)  # du, dv
             c0, c1, c2 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
             sq = c0 * c0 + c1 * c1 + c2 * c2
             if not sq > 0:
