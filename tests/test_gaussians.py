@@ -6,7 +6,7 @@ import torch
 from ggfslam.gaussians.anchor_map import PER_ANCHOR_PARAMS, AnchorMap, voxel_keys
 from ggfslam.gaussians.decoders import ChildDecoder
 from ggfslam.gaussians.density import DensityControl
-from ggfslam.gaussians.optim import make_adam
+from ggfslam.gaussians.optim import make_adam, replace_param
 from ggfslam.gaussians.ply import read_gaussians_ply, write_gaussians_ply
 
 
@@ -135,6 +135,48 @@ def test_prune_removes_transparent_anchors_and_keeps_optimizer_rows_aligned():
     assert len(dc.stats.visits) == m.n_anchors and len(dc.stats.grad_sum) == m.n_anchors * m.k
     assert set(m._keys) == set(keys_before[np.isin(keys_before, m._keys)]) and len(m._keys) == m.n_anchors
     _take_a_step(m, opt)  # the optimizer still works on the resized tensors
+
+
+def test_merge_keeps_one_anchor_per_voxel_the_most_opaque_else_the_oldest():
+    m, _ = _map(30, voxel=0.1)
+    opt = _optimizer(m)
+    _take_a_step(m, opt)
+    dc = DensityControl(m, grad_threshold=1.0, min_opacity=0.0, min_visits=1, max_anchors=1000)
+    A = m.n_anchors
+    # a second copy of the first 10 anchors (a revisit seeded from a drifted pose), then moved onto the
+    # originals by a pose correction, 1 cm off their voxel centres
+    copy = {name: getattr(m, name).detach()[:10].clone() for name in PER_ANCHOR_PARAMS}
+    copy["anchors"] = m.anchors[:10] + 0.3
+    copy["source_kf"] = torch.full((10,), 7)
+    olds = {name: getattr(m, name) for name in PER_ANCHOR_PARAMS}
+    m.append(copy)
+    for name in PER_ANCHOR_PARAMS:
+        replace_param(opt, olds[name], getattr(m, name), None, 10)
+    dc.on_append(10)
+    m.transform_anchors(m.source_kf == 7, np.array([[1, 0, 0, -0.29], [0, 1, 0, -0.29], [0, 0, 1, -0.29],
+                                                   [0, 0, 0, 1.0]]))
+    # voxels 0-3: the copy draws more (kept); 4-6: the original does; 7-9: never seen (the original is kept)
+    dc.stats.visits[:] = 0
+    dc.stats.visits[list(range(7)) + list(range(A, A + 7))] = 2
+    dc.stats.opacity_sum[:] = 0.0
+    dc.stats.opacity_sum[A:A + 4] = 1.6
+    dc.stats.opacity_sum[:4] = 0.4
+    dc.stats.opacity_sum[4:7] = 1.0
+    dc.stats.opacity_sum[A + 4:A + 7] = 0.2
+    feats = m.features.detach().clone()
+    moment = opt.state[m.features]["exp_avg"].clone()
+    assert dc.merge_collisions(opt) == 10
+    keep = torch.ones(A + 10, dtype=torch.bool)
+    keep[:4] = False
+    keep[A + 4:] = False
+    assert m.n_anchors == A
+    torch.testing.assert_close(m.features.detach(), feats[keep])
+    torch.testing.assert_close(opt.state[m.features]["exp_avg"], moment[keep])
+    assert (m.source_kf == 7).sum() == 4
+    keys = voxel_keys(m.anchors.numpy().astype(np.float64), 0.1)
+    assert len(np.unique(keys)) == A and len(m._keys) == A
+    assert len(dc.stats.visits) == A and len(dc.stats.grad_sum) == A * m.k
+    assert dc.merge_collisions(opt) == 0  # one per voxel already
 
 
 def test_grow_adds_anchors_only_in_free_voxels_where_gradients_are_large():

@@ -95,7 +95,7 @@ class Mapper:
         self._poses: dict[int, np.ndarray] = {}  # the backend's keyframe poses as last read
         self.iteration = 0
         self.train_seconds = 0.0
-        self.grown = self.pruned = 0
+        self.grown = self.pruned = self.merged = 0
         self.last_losses: dict[str, float] = {}
         self.kf_loss: dict[int, float] = {}  # each keyframe's photometric loss when it was last trained
         self.view_sink: ViewSink | None = None  # not part of the map's state (checkpoints)
@@ -211,7 +211,8 @@ class Mapper:
 
     # --- pose corrections ----------------------------------------------------------------------------
     def sync_poses(self, poses: dict[int, np.ndarray] | None = None) -> int:
-        """Move the anchors of keyframes the backend moved; returns how many keyframes moved."""
+        """Move the anchors of keyframes the backend moved, then keep one anchor per voxel where moved anchors
+        landed on others (``DensityControl.merge_collisions``); returns how many keyframes moved."""
         poses = self.pose_source() if poses is None else poses
         moved = 0
         with self.lock:
@@ -229,6 +230,8 @@ class Mapper:
                     self.map.transform_anchors(mask, D)
                 self.anchor_poses[kf_id] = T_new.copy()
                 moved += 1
+            if moved:
+                self.merged += self.density.merge_collisions(self.opt)
         return moved
 
     # --- training ------------------------------------------------------------------------------------
@@ -535,7 +538,7 @@ class Mapper:
         return {"iterations": self.iteration, "train_seconds": self.train_seconds,
                 "iterations_per_s": self.iteration / self.train_seconds if self.train_seconds else 0.0,
                 "anchors": self.map.n_anchors, "gaussians": self.n_gaussians(), "anchors_grown": self.grown,
-                "anchors_pruned": self.pruned, "keyframes": len(self.store),
+                "anchors_pruned": self.pruned, "anchors_merged": self.merged, "keyframes": len(self.store),
                 "train_width": self.intr.width, "train_height": self.intr.height, "last_losses": self.last_losses,
                 **({"ggf": self.ggf.stats()} if self.ggf is not None else {})}
 
@@ -550,7 +553,7 @@ class Mapper:
                     "poses": {k: v.copy() for k, v in self._poses.items()},
                     "rng": self.rng.bit_generator.state, "iteration": self.iteration,
                     "train_seconds": self.train_seconds, "grown": self.grown, "pruned": self.pruned,
-                    "kf_loss": dict(self.kf_loss),
+                    "merged": self.merged, "kf_loss": dict(self.kf_loss),
                     "generator": self.map.gen.get_state(),
                     "ggf": self.ggf.state() if self.ggf is not None else None}
 
@@ -574,6 +577,7 @@ class Mapper:
             self.rng.bit_generator.state = st["rng"]
             self.iteration, self.train_seconds = st["iteration"], st["train_seconds"]
             self.grown, self.pruned = st["grown"], st["pruned"]
+            self.merged = st.get("merged", 0)  # checkpoints written before merging existed
             self.kf_loss = {int(k): float(v) for k, v in st.get("kf_loss", {}).items()}
             if self.ggf is not None:
                 if st.get("ggf") is None:
