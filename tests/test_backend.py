@@ -1,9 +1,14 @@
 """GTSAM backend: the RGB-D observation factor and local bundle adjustment on a hand-built map."""
+import logging
+
 import gtsam
 import numpy as np
+import pytest
 from gtsam.utils.numerical_derivative import numericalDerivative21, numericalDerivative22
 from scipy.spatial.transform import Rotation
 
+from ggfslam.backend import local_ba
+from ggfslam.backend.backend import Backend
 from ggfslam.backend.graph import L, X, calibrations, observation_factor
 from ggfslam.backend.local_ba import local_bundle_adjustment
 from ggfslam.backend.slam_map import KeyFrame, SlamMap
@@ -85,3 +90,49 @@ def test_local_ba_recovers_perturbed_poses_and_points_and_drops_outliers():
     assert np.abs(smap.positions[: len(pts)] - pts).max() < 5e-3
     assert 3 not in smap.observations[bad] and smap.keyframes[3].landmark_ids[bad] == -1
     assert stats.outliers == 1
+
+
+class _RaisingGCGR:
+    """A GCGR source whose factor fails inside the optimizer, as a torch or numba error in a render would."""
+
+    def window_factors(self, poses):
+        def error(this, values, H=None):
+            if H is None:  # the error alone evaluates; the Jacobian's render fails (inside the optimizer)
+                return np.zeros(1)
+            raise RuntimeError("numba: failed to render the GCGR view")
+
+        k = max(poses)
+        return [(k, "depth", gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(1), [X(k)], error))]
+
+
+def test_an_error_inside_a_factor_propagates_out_of_local_ba():
+    smap, _, _ = _build_map(np.random.default_rng(1))
+    with pytest.raises(RuntimeError, match="failed to render the GCGR view"):
+        local_bundle_adjustment(smap, 3, CAM, TCFG, BackendConfig(window=8, iterations=5), _RaisingGCGR())
+
+
+def test_an_indeterminate_system_is_counted_logged_once_and_keeps_the_estimate(monkeypatch, caplog):
+    smap, truth, _ = _build_map(np.random.default_rng(2))
+
+    class Indeterminate:
+        def __init__(self, *a):
+            pass
+
+        def optimize(self):
+            raise RuntimeError("\nIndeterminate linear system detected while working near variable\n7 (Symbol: x7).")
+
+    monkeypatch.setattr(local_ba.gtsam, "LevenbergMarquardtOptimizer", Indeterminate)
+    before = {k: kf.T_wc.copy() for k, kf in smap.keyframes.items()}
+    stats = local_bundle_adjustment(smap, 3, CAM, TCFG, BackendConfig(window=8, iterations=5))
+    assert stats.failed.startswith("indeterminate system") and "variable" in stats.failed
+    assert all(np.array_equal(kf.T_wc, before[k]) for k, kf in smap.keyframes.items())
+    # the backend counts every failure in metrics.json and logs the first one only
+    backend = Backend(CAM, TCFG, BackendConfig(loop_closure=False, fusion=False, planes=False))
+    backend.map = smap
+    with caplog.at_level(logging.WARNING, logger="ggfslam.backend"):
+        backend._process(3)
+        backend._process(2)
+    summary = backend.summary()
+    assert summary["ba_failed"] == 2 and summary["ba_runs"] == 0
+    assert summary["ba_first_failure"].startswith("keyframe 3: indeterminate system")
+    assert sum("local BA skipped" in r.getMessage() for r in caplog.records) == 1

@@ -167,3 +167,26 @@ def test_allocator_tuning_opt_out(monkeypatch):
     assert cpu.tune_allocator() is False
     monkeypatch.delenv("GGFSLAM_MALLOC_TUNING")
     assert cpu.tune_allocator() is False  # tried once per process; later calls report that result
+
+
+def test_a_gpu_whose_gsplat_fails_to_import_is_reported_once(monkeypatch, caplog):
+    import builtins
+    import logging
+
+    from ggfslam.render import gsplat_backend
+
+    real_import = builtins.__import__
+
+    def broken(name, *a, **kw):
+        if name == "gsplat":
+            raise OSError("libcudart.so.12: cannot open shared object file")
+        return real_import(name, *a, **kw)
+
+    monkeypatch.setattr(gsplat_backend.torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(gsplat_backend, "_GSPLAT_IMPORTS", None)
+    monkeypatch.setattr(builtins, "__import__", broken)
+    with caplog.at_level(logging.WARNING, logger="ggfslam.render"):
+        assert not gsplat_backend.gsplat_available()
+        assert not gsplat_backend.gsplat_available()
+    warnings = [r.getMessage() for r in caplog.records if "gsplat does not import" in r.getMessage()]
+    assert len(warnings) == 1 and "libcudart" in warnings[0]

@@ -35,6 +35,8 @@ class BackendStats:
     fused_observations: int = 0
     fused_landmarks: int = 0
     loops: list[dict] = field(default_factory=list)
+    ba_failed: int = 0  # local BAs whose system was indeterminate (the map kept its estimate)
+    ba_failure: str = ""  # the first such failure, logged once
 
 
 class Backend:
@@ -128,7 +130,13 @@ class Backend:
             associate_planes(self.map, kf_id, self.bcfg)
         stats: BAStats | None = local_bundle_adjustment(self.map, kf_id, self.camera, self.tcfg, self.bcfg,
                                                            self.gcgr)
-        if stats is not None:
+        if stats is not None and stats.failed:
+            self.stats.ba_failed += 1
+            if not self.stats.ba_failure:
+                self.stats.ba_failure = f"keyframe {kf_id}: {stats.failed}"
+                log.warning("local BA skipped at %s (counted as backend.ba_failed; further ones are not logged)",
+                            self.stats.ba_failure)
+        elif stats is not None:
             self.stats.ba_runs += 1
             self.stats.ba_seconds.append(stats.seconds)
             self.stats.outliers_removed += stats.outliers
@@ -189,6 +197,7 @@ class Backend:
         s = self.stats
         return {
             "keyframes": s.keyframes, "landmarks": int(self.map.alive.sum()), "ba_runs": s.ba_runs,
+            "ba_failed": s.ba_failed, **({"ba_first_failure": s.ba_failure} if s.ba_failure else {}),
             "ba_ms_mean": 1000 * float(np.mean(s.ba_seconds)) if s.ba_seconds else 0.0,
             "ba_ms_max": 1000 * float(np.max(s.ba_seconds)) if s.ba_seconds else 0.0,
             "landmarks_culled": s.landmarks_culled, "outliers_removed": s.outliers_removed,

@@ -26,7 +26,7 @@ import torch
 from gtsam.symbol_shorthand import X
 
 from factors.gcgr import GCGRModel, MapView, SensorView
-from ggfslam.backend.local_ba import _optimize
+from ggfslam.backend.local_ba import IndeterminateSystem, optimize_lm
 from ggfslam.config import GCGRConfig
 from ggfslam.errors import ConfigError
 from ggfslam.mapping.keyframe_store import resize_depth, scaled_intrinsics
@@ -57,6 +57,7 @@ class GCGRSource:
         self.renders = 0
         self.render_seconds = 0.0
         self.frames_refined = 0
+        self.refine_failed = 0  # per-frame refinements whose system was indeterminate (pose kept)
         self.refine_seconds = 0.0
 
     # --- inputs --------------------------------------------------------------------------------------
@@ -190,8 +191,10 @@ class GCGRSource:
             graph.add(f)
         values = gtsam.Values()
         values.insert(X(0), gtsam.Pose3(T_wc))
-        result = _optimize(graph, values, iterations)
-        if result is None:  # an indeterminate system: keep the tracked pose
+        try:
+            result = optimize_lm(graph, values, iterations)
+        except IndeterminateSystem:  # keep the tracked pose (counted in refine_failed)
+            self.refine_failed += 1
             return T_wc
         T = result.atPose3(X(0)).matrix()
         self.frames_refined += 1
@@ -203,5 +206,5 @@ class GCGRSource:
         return {"models": self.models_built, "models_from_training": self.models_harvested, "factors": self.factors_added,
                 "pixels_mean": self.pixels_total / max(self.factors_added // 2, 1),
                 "renders": self.renders, "render_ms_mean": 1000 * self.render_seconds / max(self.renders, 1),
-                "frames_refined": self.frames_refined,
+                "frames_refined": self.frames_refined, "refine_failed": self.refine_failed,
                 "refine_ms_mean": 1000 * self.refine_seconds / max(self.frames_refined, 1)}

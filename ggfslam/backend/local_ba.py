@@ -18,14 +18,25 @@ from ggfslam.data.types import Camera
 _FIXED_NOISE = gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)
 
 
-def _optimize(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, iterations: int) -> gtsam.Values | None:
-    """Levenberg-Marquardt; None when the system is indeterminate."""
+# GTSAM's IndeterminantLinearSystemException reaches Python as a bare RuntimeError; its message tells it apart
+# from errors raised inside custom factors (a torch or numba failure in a GCGR render), which must propagate
+_INDETERMINATE = ("Indeterminate linear system", "Indeterminant linear system")
+
+
+class IndeterminateSystem(Exception):
+    """The linearized system is ill-posed (an under-constrained variable): the optimization did not run."""
+
+
+def optimize_lm(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, iterations: int) -> gtsam.Values:
+    """Levenberg-Marquardt; raises ``IndeterminateSystem`` for an ill-posed system, anything else as raised."""
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(iterations)
     try:
         return gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
-    except RuntimeError:
-        return None
+    except RuntimeError as e:
+        if not any(m in str(e) for m in _INDETERMINATE):
+            raise
+        raise IndeterminateSystem(" ".join(str(e).split()[:8])) from e
 
 
 @dataclass
@@ -42,6 +53,7 @@ class BAStats:
     seconds: float
     plane_factors: int = 0  # plane observations in the graph
     gcgr_factors: int = 0  # GCGR depth + normal factors in the graph
+    failed: str = ""  # why the optimization did not run ("": it ran); the map then keeps its estimate
 
 
 @dataclass
@@ -158,9 +170,11 @@ def local_bundle_adjustment(smap: SlamMap, kf_id: int, camera: Camera, tcfg: Tra
     graph, values, window, fixed, lms, obs = lg.graph, lg.values, lg.window, lg.fixed, lg.lms, lg.obs
     factors, sigmas, feats, planes_w = lg.obs_factors, lg.sigmas, lg.feats, lg.planes_w
     err0 = graph.error(values)
-    result = _optimize(graph, values, bcfg.iterations)
-    if result is None:  # an indeterminate system (a landmark seen once without depth): keep the old estimate
-        return None
+    try:
+        result = optimize_lm(graph, values, bcfg.iterations)
+    except IndeterminateSystem as e:  # e.g. a landmark seen once without depth: keep the old estimate
+        return BAStats(len(window), len(fixed), len(lms), len(obs), 0, err0, err0, time.perf_counter() - t0,
+                       lg.n_plane_obs, lg.n_gcgr, failed=f"indeterminate system: {e}")
     # outliers: whitened error above the chi-square bound, or behind the camera (all observations at once)
     kf_of = np.array([k for k, _, _ in obs], dtype=np.int64)  # [M]
     lm_of = np.array([lm for _, lm, _ in obs], dtype=np.int64)  # [M]
@@ -182,7 +196,10 @@ def local_bundle_adjustment(smap: SlamMap, kf_id: int, camera: Camera, tcfg: Tra
             if ok:
                 clean.add(factor)
         graph = clean
-        result = _optimize(graph, result, max(bcfg.iterations // 2, 3)) or result
+        try:
+            result = optimize_lm(graph, result, max(bcfg.iterations // 2, 3))
+        except IndeterminateSystem:  # removing the outliers left a variable free: keep the first solution
+            pass
     err1 = graph.error(result)
     with smap.lock:
         for k in window:

@@ -19,6 +19,8 @@ against the CPU backend when CUDA and gsplat are present.
 """
 from __future__ import annotations
 
+import logging
+
 import torch
 
 from ggfslam.errors import GGFSlamError
@@ -27,11 +29,13 @@ from ggfslam.render.types import Intrinsics, RenderSettings
 GSPLAT_MISSING = "gsplat backend needs a CUDA GPU and `pip install ggfslam[cuda]`"
 
 
+log = logging.getLogger("ggfslam.render")
 _GSPLAT_IMPORTS: bool | None = None
 
 
 def gsplat_available() -> bool:
-    """True when a CUDA device is present and gsplat imports (the import is tried once per process)."""
+    """True when a CUDA device is present and gsplat imports (the import is tried once per process; a GPU
+    whose gsplat fails to import is reported once, since ``auto`` then renders on the CPU)."""
     global _GSPLAT_IMPORTS
     if not torch.cuda.is_available():
         return False
@@ -40,7 +44,9 @@ def gsplat_available() -> bool:
             import gsplat  # noqa: F401
 
             _GSPLAT_IMPORTS = True
-        except Exception:  # ImportError, or a CUDA extension that fails to load
+        except Exception as e:  # ImportError, or a CUDA extension that fails to load
+            log.warning("a CUDA GPU is present but gsplat does not import (%s: %s): rendering on the CPU",
+                        type(e).__name__, e)
             _GSPLAT_IMPORTS = False
     return _GSPLAT_IMPORTS
 
