@@ -222,7 +222,7 @@ def run(config: Config, out_dir: str | Path, overwrite: bool = False, progress: 
             from ggfslam.backend.export import write_graph_json
 
             write_graph_json(run_dir / GRAPH_FILE, tracker.backend.map, dataset.camera, config.tracking,
-                             config.backend)
+                             config.backend, tracker.backend.gcgr)
         (run_dir / TRACKING_LOG_FILE).write_text("\n".join(lines) + "\n")
         gt = dataset.gt_poses
         if gt is not None:

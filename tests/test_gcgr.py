@@ -6,6 +6,7 @@ features, but three non-parallel planes that fix all six degrees of freedom of a
 """
 from __future__ import annotations
 
+import json
 from types import SimpleNamespace
 
 import cv2
@@ -288,6 +289,21 @@ def test_system_run_with_gcgr_in_local_ba_and_per_frame(tmp_path, monkeypatch):
     assert g["factors"] == sum(n for n, _ in seen) and g["pixels_mean"] > 100
     assert g["frames_refined"] > 10  # per-frame GCGR ran on the tracked frames
     assert metrics["trajectory"]["ate_rmse_cm"] < 3.0
+    # graph.json holds the GCGR factors the latest local BAs used, with their pixels and current errors
+    graph = json.loads((tmp_path / "run" / "graph.json").read_text())
+    gf = [f for f in graph["factors"] if f["type"].startswith("gcgr_")]
+    kfs = {k["id"] for k in graph["keyframes"]}
+    assert {f["type"] for f in gf} == {"gcgr_depth", "gcgr_normal"} and {f["kf"] for f in gf} <= kfs
+    assert graph["meta"]["factors_by_type"]["gcgr_depth"]["count"] == len(gf) // 2
+    for f in gf:
+        w, h = f["resolution"]
+        uv = np.asarray(f["pixels"])
+        assert f["keys"] == [f"x{f['kf']}"] and len(uv) > 100 and 0 < f["valid"] <= len(uv)
+        assert (uv >= 0).all() and (uv[:, 0] < w).all() and (uv[:, 1] < h).all()
+        # GTSAM's error is the Huber-robust cost: positive, at most half the unrobust chi2
+        assert 0 < f["error"] <= 0.5 * f["chi2"] + 1e-9 and f["sigma"] > 0
+    depth_rmse = [f["rows_rmse"] for f in gf if f["type"] == "gcgr_depth"]
+    assert 0 < np.median(depth_rmse) < 0.05  # metres: the map agrees with the keyframes' depth to a few cm
     # the backend's GCGR source is not pickled into the checkpoint (the map is saved by the mapper)
     from ggfslam.checkpoint import load_checkpoint, unpickle_tracker
 

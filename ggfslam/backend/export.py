@@ -18,9 +18,13 @@ with their integer values in ``gtsam_keys``:
 * ``keyframes``: id, key, frame_index, timestamp, T_wc (4x4 camera-to-world), n_landmarks (living ones seen);
 * ``landmarks``: id, key, position (world), observations (keyframes seeing it);
 * ``planes``: id, key (``"p2"``), coefficients (world n, d with n . x + d = 0), observations;
-* ``factors``: type (``rgbd_stereo`` | ``projection`` | ``odometry_link`` | ``loop`` | ``plane``), keys, gtsam_keys,
-  error, chi2; observations add kf, lm, kp, uv, depth (0: none), sigma; links add kf, other_kf, T_other_this;
-  plane factors add kf, plane, measured (camera-frame coefficients);
+* ``factors``: type (``rgbd_stereo`` | ``projection`` | ``odometry_link`` | ``loop`` | ``plane`` | ``gcgr_depth`` |
+  ``gcgr_normal``), keys, gtsam_keys, error, chi2; observations add kf, lm, kp, uv, depth (0: none), sigma; links
+  add kf, other_kf, T_other_this; plane factors add kf, plane, measured (camera-frame coefficients); GCGR factors
+  (with GCGR on: those of the keyframes whose model the source holds, i.e. what the latest local BAs used) add
+  kf, pixels ([u, v] at ``resolution`` = [width, height] of the factors), valid (rows with a map surface),
+  sigma (of one row), map_iteration (of the render they linearize) and rows_rmse (root mean square of the
+  unwhitened rows at the keyframe's current pose: metres for depth, ``0.05 (1 - cos)`` for normals). Their ``error`` is GTSAM's, from the factor's first-order model (no render);
 * ``covisibility``: kf_a < kf_b, shared (living landmarks both see), only pairs sharing >= MIN_COVISIBILITY.
 """
 from __future__ import annotations
@@ -39,7 +43,7 @@ from ggfslam.data.types import Camera
 __all__ = ["FORMAT_VERSION", "graph_to_dict", "write_graph_json", "load_graph_networkx", "observation_errors",
            "huber_loss", "MIN_COVISIBILITY"]
 
-FORMAT_VERSION = "ggfslam-graph/2"  # 2: plane landmarks and plane factors
+FORMAT_VERSION = "ggfslam-graph/3"  # 2: plane landmarks and plane factors; 3: GCGR factors
 MIN_COVISIBILITY = 15  # shared landmarks for a covisibility edge (local BA's min_shared)
 
 
@@ -47,8 +51,8 @@ def _key_name(kind: str, i: int) -> str:
     return f"{kind}{i}"
 
 
-def graph_to_dict(smap: SlamMap, camera: Camera, tcfg: TrackingConfig, bcfg: BackendConfig) -> dict:
-    """The map's factor graph as a JSON-ready dict (see the module docstring)."""
+def graph_to_dict(smap: SlamMap, camera: Camera, tcfg: TrackingConfig, bcfg: BackendConfig, gcgr=None) -> dict:
+    """The map's factor graph as a JSON-ready dict (see the module docstring); ``gcgr``: a ``GCGRSource``."""
     level_scale = tcfg.scale_factor ** np.arange(tcfg.n_levels)  # [L]
     with smap.lock:  # one consistent snapshot even if a backend thread is still running
         kf_ids = sorted(smap.keyframes)
@@ -132,6 +136,9 @@ def graph_to_dict(smap: SlamMap, camera: Camera, tcfg: TrackingConfig, bcfg: Bac
             "kf": int(k), "plane": int(pid), "measured": z.tolist(), "error": err, "chi2": 2.0 * err,
         })
 
+    if gcgr is not None:
+        factors += _gcgr_factors(gcgr, values, poses)
+
     # covisibility: shared living landmarks per keyframe pair = off-diagonal of A A^T (A: keyframe x landmark)
     covis = []
     if m:
@@ -175,11 +182,32 @@ def graph_to_dict(smap: SlamMap, camera: Camera, tcfg: TrackingConfig, bcfg: Bac
     }
 
 
+def _gcgr_factors(gcgr, values: gtsam.Values, poses: dict[int, np.ndarray]) -> list[dict]:
+    """The GCGR factors of the keyframes whose model the source holds, at the keyframes' current poses."""
+    out = []
+    for k, (model, iteration) in sorted(gcgr.cached_models().items()):
+        if k not in poses:
+            continue
+        w = model.sensor.intr.width
+        uv = np.stack([model.pixels % w, model.pixels // w], axis=1)  # [N, 2]
+        for kind, factor in model.factors().items():
+            err = float(factor.error(values))
+            rows = model.evaluate(kind, gtsam.Pose3(poses[k]))  # [N] first-order model, no render
+            out.append({
+                "type": f"gcgr_{kind}", "keys": [_key_name("x", k)], "gtsam_keys": [X(k)], "kf": int(k),
+                "pixels": uv.tolist(), "resolution": [w, model.sensor.intr.height],
+                "valid": int(model.valid.sum()), "sigma": model.row_sigma, "map_iteration": int(iteration),
+                "rows_rmse": float(np.sqrt(np.mean(rows ** 2))) if len(rows) else 0.0,
+                "error": err, "chi2": float(np.sum((rows / model.row_sigma) ** 2)),
+            })
+    return out
+
+
 def write_graph_json(path: str | Path, smap: SlamMap, camera: Camera, tcfg: TrackingConfig,
-                     bcfg: BackendConfig) -> dict:
+                     bcfg: BackendConfig, gcgr=None) -> dict:
     """Write the factor graph to ``path`` (compact JSON, atomically) and return its dict."""
     path = Path(path)
-    data = graph_to_dict(smap, camera, tcfg, bcfg)
+    data = graph_to_dict(smap, camera, tcfg, bcfg, gcgr)
     tmp = path.with_suffix(path.suffix + ".tmp")
     # compact: tens of thousands of factors; indentation would triple the file
     tmp.write_text(json.dumps(data, separators=(",", ":")) + "\n")
@@ -188,7 +216,8 @@ def write_graph_json(path: str | Path, smap: SlamMap, camera: Camera, tcfg: Trac
 
 
 def load_graph_networkx(path: str | Path):
-    """A networkx.Graph of a graph.json: keyframe and landmark nodes (by key), one edge per factor."""
+    """A networkx.Graph of a graph.json: keyframe, landmark and plane nodes (by key), one edge per two-key factor;
+    one-key factors (GCGR) are listed on their keyframe's node under ``unary_factors``."""
     try:
         import networkx as nx
     except ImportError:
@@ -202,6 +231,9 @@ def load_graph_networkx(path: str | Path):
     for pl in data.get("planes", []):
         g.add_node(pl["key"], kind="plane", **{k: v for k, v in pl.items() if k != "key"})
     for f in data["factors"]:
+        if len(f["keys"]) == 1:
+            g.nodes[f["keys"][0]].setdefault("unary_factors", []).append(f)
+            continue
         a, b = f["keys"]
         g.add_edge(a, b, **{k: v for k, v in f.items() if k != "keys"})
     return g

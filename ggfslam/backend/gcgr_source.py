@@ -93,6 +93,11 @@ class GCGRSource:
         return view
 
     # --- factors -------------------------------------------------------------------------------------
+    def cached_models(self) -> dict[int, tuple[GCGRModel, int]]:
+        """Keyframe -> (model, map iteration of its render) of every cached model: the factors local BA uses."""
+        with self._lock:
+            return dict(self._models)
+
     def _cached(self, kf_id: int) -> tuple[GCGRModel, int] | None:
         """The keyframe's cached (model, map iteration of its render), or None."""
         with self._lock:
