@@ -12,6 +12,7 @@ import json
 import logging
 from pathlib import Path
 
+from ggfslam.atomic import write_text_atomic
 from ggfslam.config import Config, load_config
 from ggfslam.errors import ConfigError, RunDirError
 from ggfslam.rundir import METRICS_FILE, RUN_INFO_FILE
@@ -74,7 +75,7 @@ def ablation(configs: list[str | Path], out: str | Path, variants: list[str] | N
         seq = cfg.name or path.stem
         metrics = run_variant(cfg, out / seq / variant)
         rows.append({"sequence": seq, "variant": variant, **row_of(metrics)})
-        (out / "ablation.json").write_text(json.dumps({"overrides": overrides or [], "rows": rows}, indent=1))
+        write_text_atomic(out / "ablation.json", json.dumps({"overrides": overrides or [], "rows": rows}, indent=1))
     return rows
 
 

@@ -7,7 +7,6 @@ Like any pickle, load checkpoints only from run directories you trust.
 """
 from __future__ import annotations
 
-import os
 import pickle
 import random
 from pathlib import Path
@@ -15,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ggfslam.atomic import atomic_path
 from ggfslam.errors import RunDirError
 
 CHECKPOINT_FILE = "checkpoint.pt"
@@ -57,9 +57,8 @@ def save_checkpoint(run_dir: Path, *, next_frame: int, tracker, mapper=None, pen
         "rss": list(rss or []),
     }
     path = Path(run_dir) / CHECKPOINT_FILE
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(state, tmp)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        torch.save(state, tmp)
     return path
 
 

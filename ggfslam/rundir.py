@@ -5,6 +5,7 @@ import json
 import shutil
 from pathlib import Path
 
+from ggfslam.atomic import write_text_atomic
 from ggfslam.errors import RunDirError
 
 CONFIG_FILE = "config.yaml"
@@ -71,6 +72,4 @@ def read_json(path: Path) -> dict:
 
 def write_json(path: Path, data: dict) -> None:
     """Write JSON atomically (temp file + rename) so an interrupted write never leaves half a file."""
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2, sort_keys=False, default=float) + "\n")
-    tmp.replace(path)
+    write_text_atomic(path, json.dumps(data, indent=2, sort_keys=False, default=float) + "\n")

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from ggfslam import __version__
+from ggfslam.atomic import write_text_atomic
 from ggfslam.config import Config, load_config, save_config
 from ggfslam.data.base import RGBDDataset
 from ggfslam.data.sources import open_dataset_from_config
@@ -21,8 +22,23 @@ from ggfslam.errors import GGFSlamError, RunDirError
 from ggfslam.eval.perf import StageTimer, current_rss_mb, peak_rss_mb
 from ggfslam.eval.trajectory import trajectory_metrics
 from ggfslam.rundir import (
-    CONFIG_FILE, GAUSSIANS_FILE, PLANARITY_FILE, GRAPH_FILE, KEYFRAME_IMAGES_DIR, MESH_FILE, GROUNDTRUTH_FILE, KEYFRAMES_FILE, LOG_FILE, METRICS_FILE, RUN_INFO_FILE, TRACKING_LOG_FILE, TRAJECTORY_FILE,
-    prepare_run_dir, read_json, require_run_dir, write_json,
+    CONFIG_FILE,
+    GAUSSIANS_FILE,
+    GRAPH_FILE,
+    GROUNDTRUTH_FILE,
+    KEYFRAME_IMAGES_DIR,
+    KEYFRAMES_FILE,
+    LOG_FILE,
+    MESH_FILE,
+    METRICS_FILE,
+    PLANARITY_FILE,
+    RUN_INFO_FILE,
+    TRACKING_LOG_FILE,
+    TRAJECTORY_FILE,
+    prepare_run_dir,
+    read_json,
+    require_run_dir,
+    write_json,
 )
 
 log = logging.getLogger("ggfslam")
@@ -223,7 +239,7 @@ def run(config: Config, out_dir: str | Path, overwrite: bool = False, progress: 
 
             write_graph_json(run_dir / GRAPH_FILE, tracker.backend.map, dataset.camera, config.tracking,
                              config.backend, tracker.backend.gcgr)
-        (run_dir / TRACKING_LOG_FILE).write_text("\n".join(lines) + "\n")
+        write_text_atomic(run_dir / TRACKING_LOG_FILE, "\n".join(lines) + "\n")
         gt = dataset.gt_poses
         if gt is not None:
             write_tum_trajectory(run_dir / GROUNDTRUTH_FILE, dataset.timestamps, gt,

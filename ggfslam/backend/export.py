@@ -35,6 +35,7 @@ from pathlib import Path
 import gtsam
 import numpy as np
 
+from ggfslam.atomic import write_text_atomic
 from ggfslam.backend.graph import L, P, X, huber_loss, observation_errors, odometry_link_factor, plane_factor
 from ggfslam.backend.slam_map import SlamMap
 from ggfslam.config import BackendConfig, TrackingConfig
@@ -208,10 +209,8 @@ def write_graph_json(path: str | Path, smap: SlamMap, camera: Camera, tcfg: Trac
     """Write the factor graph to ``path`` (compact JSON, atomically) and return its dict."""
     path = Path(path)
     data = graph_to_dict(smap, camera, tcfg, bcfg, gcgr)
-    tmp = path.with_suffix(path.suffix + ".tmp")
     # compact: tens of thousands of factors; indentation would triple the file
-    tmp.write_text(json.dumps(data, separators=(",", ":")) + "\n")
-    tmp.replace(path)
+    write_text_atomic(path, json.dumps(data, separators=(",", ":")) + "\n")
     return data
 
 

@@ -18,6 +18,7 @@ from pathlib import Path
 import numba
 import numpy as np
 
+from ggfslam.atomic import atomic_path
 from ggfslam.errors import DatasetError
 
 __all__ = ["DESCRIPTOR_BYTES", "BowVector", "Vocabulary", "KeyframeDatabase", "bow_score", "hamming_matrix",
@@ -319,7 +320,8 @@ class Vocabulary:
         """Write the vocabulary to a compressed npz file; returns the path."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        with open(path, "wb") as f:  # a file object keeps numpy from appending ".npz" to other suffixes
+        # a file object keeps numpy from appending ".npz" to other suffixes
+        with atomic_path(path) as tmp, open(tmp, "wb") as f:
             np.savez_compressed(f, format=np.array(_FORMAT), centres=self.centres, parent=self.parent,
                                 word_of_node=self.word_of_node, idf=self.idf.astype(np.float32),
                                 branching=np.int32(self.branching), depth=np.int32(self.depth))

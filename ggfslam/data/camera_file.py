@@ -6,6 +6,7 @@ from pathlib import Path
 
 import yaml
 
+from ggfslam.atomic import write_text_atomic
 from ggfslam.data.types import Camera
 from ggfslam.errors import DatasetError
 
@@ -16,7 +17,7 @@ _DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)  # what OpenCV accepts
 
 def write_camera_yaml(path: str | Path, camera: Camera) -> None:
     """Save intrinsics as YAML (fx, fy, cx, cy, width, height, depth_scale, distortion)."""
-    Path(path).write_text(yaml.safe_dump(camera.to_dict(), sort_keys=False))
+    write_text_atomic(path, yaml.safe_dump(camera.to_dict(), sort_keys=False))
 
 
 def _number(path: Path, data: dict, key: str, positive: bool) -> float:

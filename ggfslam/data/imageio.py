@@ -6,6 +6,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ggfslam.atomic import atomic_path
 from ggfslam.errors import DatasetError
 
 
@@ -51,12 +52,14 @@ def read_depth(path: str | Path, depth_scale: float) -> np.ndarray:
 def write_rgb(path: str | Path, rgb: np.ndarray) -> None:
     """Write float RGB [H, W, 3] in [0, 1] as an 8-bit image (format from the suffix)."""
     img = np.clip(np.round(np.asarray(rgb) * 255.0), 0, 255).astype(np.uint8)[..., ::-1]
-    if not cv2.imwrite(str(path), img):
-        raise DatasetError(path, "cannot write colour image")
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), img):
+            raise DatasetError(path, "cannot write colour image")
 
 
 def write_depth(path: str | Path, depth_m: np.ndarray, depth_scale: float) -> None:
     """Write metric depth [H, W] as a 16-bit PNG with ``depth_scale`` units per metre (clipped to range)."""
     raw = np.clip(np.round(np.asarray(depth_m, dtype=np.float64) * depth_scale), 0, 65535).astype(np.uint16)
-    if not cv2.imwrite(str(path), raw):
-        raise DatasetError(path, "cannot write depth image")
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), raw):
+            raise DatasetError(path, "cannot write depth image")

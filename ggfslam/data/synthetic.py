@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 import open3d as o3d
 
+from ggfslam.atomic import atomic_path, write_text_atomic
 from ggfslam.data.replica import read_cam_params, read_matrix_trajectory
 from ggfslam.data.scene_builder import ROOM_MAX, ROOM_MIN, SceneMesh, make_scene
 from ggfslam.data.types import Camera, Frame
@@ -407,13 +408,14 @@ def generate_sequence(
 
 def _write_mesh(path: Path, mesh: o3d.geometry.TriangleMesh) -> None:
     """Binary PLY with vertex normals and colours (byte-identical for identical meshes)."""
-    if not o3d.io.write_triangle_mesh(str(path), mesh, write_ascii=False, compressed=False,
-                                      write_vertex_normals=True, write_vertex_colors=True, print_progress=False):
-        raise DatasetError(path, "cannot write mesh")
+    with atomic_path(path) as tmp:
+        if not o3d.io.write_triangle_mesh(str(tmp), mesh, write_ascii=False, compressed=False,
+                                          write_vertex_normals=True, write_vertex_colors=True, print_progress=False):
+            raise DatasetError(path, "cannot write mesh")
 
 
 def _write_json(path: Path, data: dict) -> None:
-    path.write_text(json.dumps(data, indent=2, sort_keys=False) + "\n")
+    write_text_atomic(path, json.dumps(data, indent=2, sort_keys=False) + "\n")
 
 
 def write_synthetic_sequence(
@@ -434,7 +436,8 @@ def write_synthetic_sequence(
     out = write_tum_sequence(out_dir, iter(seq), seq.camera, depth_scale=DEPTH_SCALE, overwrite=overwrite)
     scene = seq.scene
     _write_mesh(out / "mesh.ply", scene.mesh)
-    np.save(out / "mesh_labels.npy", scene.triangle_labels.astype(np.int32))  # [F], triangle order of mesh.ply
+    with atomic_path(out / "mesh_labels.npy") as tmp:
+        np.save(tmp, scene.triangle_labels.astype(np.int32))  # [F], triangle order of mesh.ply
     _write_json(out / "scene.json", {
         "generator": GENERATOR_VERSION,
         "seed": int(seed),

@@ -5,6 +5,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ggfslam.atomic import write_text_atomic
 from ggfslam.errors import DatasetError
 from ggfslam.geometry.se3 import pose_from_tum, pose_to_tum, rigidity_error
 
@@ -73,4 +74,4 @@ def write_tum_trajectory(path: str | Path, stamps: np.ndarray, poses: np.ndarray
             raise ValueError(f"refusing to write pose at t={t}: {err}")
         v = pose_to_tum(T)
         lines.append(f"{t:.6f} " + " ".join(f"{x:.9f}" for x in v))
-    Path(path).write_text("\n".join(lines) + "\n")
+    write_text_atomic(path, "\n".join(lines) + "\n")

@@ -5,11 +5,14 @@ from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
+
+from ggfslam.atomic import write_text_atomic
 from ggfslam.data.camera_file import CAMERA_FILE, write_camera_yaml
 from ggfslam.data.imageio import write_depth, write_rgb
 from ggfslam.data.trajectory_io import write_tum_trajectory
 from ggfslam.data.types import Camera, Frame
 from ggfslam.errors import RunDirError
+
 
 def write_tum_sequence(
     out_dir: str | Path,
@@ -42,8 +45,8 @@ def write_tum_sequence(
             have_gt = False
         else:
             poses.append(f.T_wc)
-    (out / "rgb.txt").write_text("\n".join(rgb_lines) + "\n")
-    (out / "depth.txt").write_text("\n".join(depth_lines) + "\n")
+    write_text_atomic(out / "rgb.txt", "\n".join(rgb_lines) + "\n")
+    write_text_atomic(out / "depth.txt", "\n".join(depth_lines) + "\n")
     if have_gt and poses:
         write_tum_trajectory(out / "groundtruth.txt", np.array(stamps), np.stack(poses), header="ground truth")
     cam = Camera(camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height, depth_scale,

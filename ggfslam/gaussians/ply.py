@@ -9,12 +9,12 @@ w, x, y, z quaternions. A bake may carry degree-1 SH (``sh_rest``); the file alw
 """
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 from numpy.lib.recfunctions import structured_to_unstructured
 
+from ggfslam.atomic import atomic_path
 from ggfslam.errors import DatasetError
 
 SH_C0 = 0.28209479177387814
@@ -62,15 +62,9 @@ def _as_numpy(name: str, x, shape: tuple[int | None, ...]) -> np.ndarray:
 
 def _atomic_write(path: Path, header: bytes, body: np.ndarray) -> None:
     """Write header + the raw bytes of ``body`` to a temp file, then rename, so readers never see half a file."""
-    tmp = path.with_suffix(".ply.tmp")
-    try:
-        with open(tmp, "wb") as f:
-            f.write(header)
-            np.ascontiguousarray(body).tofile(f)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        f.write(header)
+        np.ascontiguousarray(body).tofile(f)
 
 
 def write_gaussians_ply(path, means, quats, scales, opacities, colors, sh_rest=None) -> None:

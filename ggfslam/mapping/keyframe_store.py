@@ -7,7 +7,6 @@ the training size, for coarse-to-fine training) are made from level 0 on first u
 """
 from __future__ import annotations
 
-import os
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass, field
@@ -16,6 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ggfslam.atomic import atomic_path
 from ggfslam.data.types import Camera
 from ggfslam.geometry.depth import normals_from_depth, resize_depth_image
 from ggfslam.render.types import Intrinsics
@@ -89,9 +89,8 @@ class KeyframeStore:
         """Store a keyframe's full-resolution colour [H, W, 3] and depth [H, W] at training resolution."""
         rgb_s, depth_s = resize_rgbd(rgb, depth, self.intr)
         rgb8 = np.clip(np.rint(rgb_s * 255), 0, 255).astype(np.uint8)
-        tmp = self.path(kf_id).with_suffix(".tmp.npz")
-        np.savez(tmp, rgb=rgb8, depth=depth_s, frame_index=frame_index)
-        os.replace(tmp, self.path(kf_id))
+        with atomic_path(self.path(kf_id)) as tmp:
+            np.savez(tmp, rgb=rgb8, depth=depth_s, frame_index=frame_index)
         item = self._make(rgb8, depth_s, frame_index)
         with self._lock:
             self._frames[kf_id] = frame_index

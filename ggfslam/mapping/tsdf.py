@@ -7,13 +7,13 @@ meshes in this project. Two Open3D details matter: the grid wants the world-to-c
 """
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 import open3d as o3d
 import open3d.core as o3c
 
+from ggfslam.atomic import atomic_path
 from ggfslam.errors import GGFSlamError, RunDirError
 
 
@@ -99,14 +99,9 @@ def write_mesh(path, mesh: o3d.geometry.TriangleMesh) -> None:
         raise EmptyMeshError(
             f"{path}: TSDF fusion produced no surface (0 triangles); check the depth images (metres, 0 = invalid, "
             "within depth_max), the camera intrinsics and that poses are camera-to-world")
-    # Open3D chooses the writer from the extension, so the temporary name must still end in .ply
-    tmp = path.with_name(path.stem + ".tmp.ply")
-    try:
+    with atomic_path(path) as tmp:
         ok = o3d.io.write_triangle_mesh(str(tmp), mesh, write_ascii=False, compressed=False,
                                         write_vertex_normals=mesh.has_vertex_normals(),
                                         write_vertex_colors=True, write_triangle_uvs=False)
         if not ok or not tmp.is_file():
             raise RunDirError(f"{path}: Open3D could not write the mesh (does the folder exist and is it writable?)")
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
