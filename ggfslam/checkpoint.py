@@ -2,8 +2,10 @@
 
 ``checkpoint.pt`` in the run directory (``torch.save``; written to a temporary file and renamed, so an
 interrupted write never destroys the previous checkpoint). The tracker (with its SLAM map and factor-graph
-state) is stored pickled; the map as tensors. ``ggfslam render`` needs only the map part and the poses.
-Like any pickle, load checkpoints only from run directories you trust.
+state) is stored as a pickle inside it; the map as tensors. ``ggfslam render`` needs only the map part and the
+poses. Reading never executes what the file contains: the file is read with ``torch.load(weights_only=True)``
+and the tracker with an allow-list unpickler (``ggfslam.safe_load``), so a run folder someone sent you is safe
+to open; a file asking for anything else is refused with ``RunDirError``.
 """
 from __future__ import annotations
 
@@ -16,6 +18,7 @@ import torch
 
 from ggfslam.atomic import atomic_path
 from ggfslam.errors import RunDirError
+from ggfslam.safe_load import UnsafeCheckpoint, load_tracker_pickle, torch_load_safely
 
 CHECKPOINT_FILE = "checkpoint.pt"
 FORMAT = "ggfslam-checkpoint/1"
@@ -69,14 +72,30 @@ def load_checkpoint(run_dir: Path) -> dict:
         raise RunDirError(f"{path}: no checkpoint (the run wrote none: mapping.checkpoint_every, or it never "
                           "reached its first checkpoint)")
     try:
-        st = torch.load(path, map_location="cpu", weights_only=False)
+        st = torch_load_safely(path)
+    except pickle.UnpicklingError as e:  # what weights_only raises for a global outside the allow-list
+        # torch's message is a paragraph: keep the line naming what the file asked for
+        what = next((line.strip() for line in str(e).splitlines() if "GLOBAL" in line), "")
+        raise RunDirError(f"{path}: refused: it asks for more than tensors and arrays (not a ggfslam checkpoint, or "
+                          f"one crafted to run code on load){': ' + what if what else ''}") from None
     except Exception as e:  # torch raises many types for a damaged archive
         raise RunDirError(f"{path}: damaged checkpoint ({e.__class__.__name__}: {e})") from None
-    if not isinstance(st, dict) or st.get("format") != FORMAT:
-        raise RunDirError(f"{path}: not a {FORMAT} checkpoint")
+    if not isinstance(st, dict) or "format" not in st:
+        raise RunDirError(f"{path}: not a ggfslam checkpoint (no format field)")
+    if st["format"] != FORMAT:
+        raise RunDirError(f"{path}: checkpoint format {st['format']!r}, this ggfslam reads {FORMAT!r}: resume or "
+                          "render it with the ggfslam version that wrote it")
+    st["_path"] = str(path)  # for unpickle_tracker's messages
     return st
 
 
 def unpickle_tracker(st: dict):
-    """The tracker stored in a checkpoint (threads restarted by the objects themselves)."""
-    return pickle.loads(st["tracker"])
+    """The tracker stored in a checkpoint (threads restarted by the objects themselves), read with the
+    allow-list unpickler; RunDirError when the pickle asks for anything else."""
+    try:
+        return load_tracker_pickle(st["tracker"])
+    except UnsafeCheckpoint as e:
+        raise RunDirError(f"{st.get('_path', CHECKPOINT_FILE)}: refused: {e} (crafted to run code on load?)") from None
+    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, KeyError, AttributeError) as e:
+        raise RunDirError(f"{st.get('_path', CHECKPOINT_FILE)}: damaged tracker state ({e.__class__.__name__}: "
+                          f"{e})") from None

@@ -11,6 +11,8 @@
 """
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import torch
 
@@ -166,7 +168,8 @@ class GeometricGaussianField:
 
     def state(self) -> dict:
         """Net, optimizer, cached geometry and counters (a resumed run continues bit for bit)."""
-        return {"net": self.net.state_dict(), "opt": self.opt.state_dict(), "geom": self.geom, "prior": self.prior,
+        return {"net": self.net.state_dict(), "opt": self.opt.state_dict(),
+                "geom": None if self.geom is None else dataclasses.asdict(self.geom), "prior": self.prior,
                 "versions": self._versions, "refreshed_at": self._refreshed_at, "updates": self.updates,
                 "regimes": self.regimes.copy(), "last_loss": self.last_loss}
 
@@ -174,7 +177,8 @@ class GeometricGaussianField:
         """Restore ``state()``."""
         self.net.load_state_dict(st["net"])
         self.opt.load_state_dict(st["opt"])
-        self.geom, self.prior = st["geom"], st["prior"]
+        self.geom = None if st["geom"] is None else AnchorGeometry(**st["geom"])
+        self.prior = st["prior"]
         self._align = quat_z_to(self.geom.normals) if self.geom is not None else None
         self._versions, self._refreshed_at = tuple(st["versions"]), st["refreshed_at"]
         self.updates, self.regimes, self.last_loss = st["updates"], np.asarray(st["regimes"]), st["last_loss"]
