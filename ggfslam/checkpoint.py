@@ -37,7 +37,7 @@ def set_rng_state(st: dict) -> None:
 
 
 def save_checkpoint(run_dir: Path, *, next_frame: int, tracker, mapper=None, pending=None, lines=None,
-                    timer=None, finished: bool = False, rss=None) -> Path:
+                    timer=None, finished: bool = False, rss=None, skipped=None) -> Path:
     """Write ``checkpoint.pt``: everything needed to continue the run at frame ``next_frame``."""
     backend = getattr(tracker, "backend", None)
     if backend is not None:
@@ -58,6 +58,7 @@ def save_checkpoint(run_dir: Path, *, next_frame: int, tracker, mapper=None, pen
         "kf_frames": {} if mapper is None else {k: mapper.store.frame_index(k) for k in mapper.store.ids()},
         "pending": {} if pending is None else {int(k): v for k, v in pending.items()},
         "rss": list(rss or []),
+        "skipped": list(skipped or []),  # bad frames passed over so far: {"index", "error"}
     }
     path = Path(run_dir) / CHECKPOINT_FILE
     with atomic_path(path) as tmp:

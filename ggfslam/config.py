@@ -103,6 +103,11 @@ class DatasetConfig(_Section):
     """Intrinsics override; None = from the dataset (camera.yaml, cam_params.json, TUM defaults, ...)."""
     synthetic: SyntheticConfig = SyntheticConfig()
     """Parameters of a generated sequence (kind: synthetic)."""
+    on_bad_frame: Literal["skip", "error"] = "skip"
+    """A frame whose files are missing, unreadable or invalid: ``skip`` it (one warning naming the file, listed in
+    metrics.json ``tracking.frames_skipped`` and as ``skipped`` in tracking.txt) or end the run (``error``)."""
+    max_bad_frames: float = 0.05
+    """Share of the sequence's frames that may be skipped; one more ends the run (its outputs are saved first)."""
 
     @model_validator(mode="after")
     def _check(self) -> "DatasetConfig":
@@ -114,6 +119,8 @@ class DatasetConfig(_Section):
             raise ValueError("start must be >= 0")
         if self.stop is not None and self.stop <= self.start:
             raise ValueError("stop must be greater than start")
+        if not 0 <= self.max_bad_frames <= 1:
+            raise ValueError("max_bad_frames must be a share of the frames, in [0, 1]")
         return self
 
 

@@ -4,8 +4,11 @@ from __future__ import annotations
 import logging
 import platform
 import random
+import signal
 import sys
+import threading
 import time
+from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -18,7 +21,7 @@ from ggfslam.config import Config, load_config, save_config
 from ggfslam.data.base import RGBDDataset
 from ggfslam.data.sources import open_dataset_from_config
 from ggfslam.data.trajectory_io import read_tum_trajectory, write_tum_trajectory
-from ggfslam.errors import GGFSlamError, RunDirError
+from ggfslam.errors import DatasetError, GGFSlamError, RunDirError
 from ggfslam.eval.perf import StageTimer, current_rss_mb, peak_rss_mb
 from ggfslam.eval.trajectory import trajectory_metrics
 from ggfslam.rundir import (
@@ -134,154 +137,331 @@ def _check_resume_config(config: Config, run_dir: Path) -> None:
                           f"{', '.join(diff)}; resume without a config (the saved one is used)")
 
 
+@dataclass
+class _RunState:
+    """What a run has built so far: enough to continue it, or to save it when it stops early."""
+
+    n: int  # frames in the sequence
+    timer: StageTimer = field(default_factory=StageTimer)
+    tracker: object = None
+    mapper: object = None
+    worker: object = None
+    lines: list[str] = field(default_factory=lambda: ["# index timestamp state keyframe matches fitness ms"])
+    rss: list = field(default_factory=list)  # (frames done, MiB): memory against length
+    skipped: list[dict] = field(default_factory=list)  # bad frames passed over: {"index", "error"}
+    start: int = 0  # first frame this invocation tracks
+    frame: int = 0  # the frame being processed
+    consistent: int | None = None  # frames [0, consistent) are done and the state is whole (None: mid-update)
+    wall: float = 0.0
+
+    def frame_indices(self, n_poses: int) -> np.ndarray:
+        """Frame indices [n_poses] of the tracker's poses (every frame but the skipped ones, in order)."""
+        bad = {s["index"] for s in self.skipped}
+        return np.array([i for i in range(self.n) if i not in bad][:n_poses], dtype=np.int64)
+
+    def checkpoint(self, run_dir: Path, next_frame: int, finished: bool = False) -> None:
+        """Write checkpoint.pt for continuing at ``next_frame``."""
+        from ggfslam.checkpoint import save_checkpoint
+
+        with self.timer("checkpoint"):
+            save_checkpoint(run_dir, next_frame=next_frame, tracker=self.tracker, mapper=self.mapper,
+                            pending=None if self.worker is None else self.worker.pending(), lines=self.lines,
+                            timer=self.timer, rss=self.rss, skipped=self.skipped, finished=finished)
+
+
+class _StopRequests:
+    """Ctrl-C or SIGTERM while frames are tracked: the first stops the run after the current frame, with what it
+    has saved and a checkpoint to ``--resume`` from; a second stops it at once, as does one outside the tracking
+    loop (finishing, writing outputs). Signals are only caught in the main thread."""
+
+    def __init__(self):
+        self.requested: str | None = None
+        self.tracking = False  # inside the frame loop, where a stop can wait for the frame's end
+        self._previous: dict = {}
+
+    def __enter__(self) -> _StopRequests:
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self._previous[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def _handle(self, signum, _frame) -> None:
+        if self.requested is not None or not self.tracking:
+            raise KeyboardInterrupt(signal.Signals(signum).name)
+        self.requested = signal.Signals(signum).name
+        log.warning("%s: stopping after this frame and saving the run (again to stop at once)", self.requested)
+
+    def __exit__(self, *exc) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+
+
 def run(config: Config, out_dir: str | Path, overwrite: bool = False, progress: bool | None = None,
         resume: bool = False) -> dict:
     """Run the system on the configured sequence, write the run directory and return its metrics.
 
-    With ``resume``, ``out_dir`` must be an interrupted run with a checkpoint; the run continues from it."""
-    from ggfslam.checkpoint import load_checkpoint, save_checkpoint, set_rng_state, unpickle_tracker
-
+    With ``resume``, ``out_dir`` must be an unfinished run; it continues from its checkpoint (from the first frame
+    when it stopped before writing one). A run that stops early (an error, Ctrl-C, SIGTERM) first saves what it
+    has (``_save_stopped_run``)."""
     setup_runtime(config)
     dataset = open_dataset_from_config(config.dataset)  # fails on bad input before the run folder is touched
-    n = len(dataset)
+    run_dir, ckpt = _open_run_dir(config, out_dir, overwrite, resume)
+    handler = _attach_log(run_dir)
+    st = _RunState(len(dataset))
+    try:
+        with _StopRequests() as stop:
+            log.info("run %s on %s", config.name, dataset.describe())
+            _restore_or_start(config, dataset, run_dir, ckpt, st)
+            _track_sequence(config, dataset, run_dir, st, stop, progress)
+            _finish_sequence(config, st)
+            metrics = _write_outputs(config, dataset, run_dir, st)
+        info = read_json(run_dir / RUN_INFO_FILE)
+        info.update(status="finished", finished=datetime.now(timezone.utc).isoformat(timespec="seconds"))
+        for key in ("stopped_at_frame", "error", "resume_from_frame"):
+            info.pop(key, None)
+        write_json(run_dir / RUN_INFO_FILE, info)
+        log.info("finished: %s", metrics.get("trajectory", {}))
+        return metrics
+    except BaseException as e:
+        _save_stopped_run(config, dataset, run_dir, st, e)
+        raise
+    finally:
+        if st.worker is not None:
+            st.worker.abort()  # no-op after finish(); after an error, no training goes on in the background
+        log.removeHandler(handler)
+        handler.close()
+
+
+def _open_run_dir(config: Config, out_dir: str | Path, overwrite: bool, resume: bool) -> tuple[Path, dict | None]:
+    """The run directory (new, or the unfinished run to resume) and its checkpoint (None: start from frame 0)."""
+    from ggfslam.checkpoint import CHECKPOINT_FILE, load_checkpoint
+
     ckpt = None
     if resume:
         run_dir = require_run_dir(out_dir)
         _check_resume_config(config, run_dir)
         if read_json(run_dir / RUN_INFO_FILE).get("status") == "finished":
             raise RunDirError(f"{run_dir}: the run finished; nothing to resume")
-        ckpt = load_checkpoint(run_dir)
+        for leftover in [*run_dir.glob(".*.tmp-*"), *(run_dir / KEYFRAME_IMAGES_DIR).glob(".*.tmp-*")]:
+            leftover.unlink()  # a write cut short by a kill (ggfslam.atomic): never a file of the run
+        if (run_dir / CHECKPOINT_FILE).is_file():
+            ckpt = load_checkpoint(run_dir)
     else:
         run_dir = prepare_run_dir(out_dir, overwrite)
         save_config(config, run_dir / CONFIG_FILE)
-    handler = _attach_log(run_dir)
-    info = {"ggfslam_version": __version__, "started": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-            "command": sys.argv, "dataset": dataset.describe(), "camera": dataset.camera.to_dict(),
-            "python": platform.python_version(), "torch": torch.__version__, "status": "running"}
+    return run_dir, ckpt
+
+
+def _restore_or_start(config: Config, dataset: RGBDDataset, run_dir: Path, ckpt: dict | None, st: _RunState) -> None:
+    """Tracker, mapper and worker: new, or as the checkpoint left them; run.json says the run is running."""
+    from ggfslam.checkpoint import set_rng_state, unpickle_tracker
+
+    info = read_json(run_dir / RUN_INFO_FILE) if (run_dir / RUN_INFO_FILE).is_file() else {}
+    for key in ("stopped_at_frame", "error", "resume_from_frame"):
+        info.pop(key, None)
+    if not info or not (ckpt is not None or info.get("status") in ("failed", "interrupted", "running")):
+        info = {"ggfslam_version": __version__, "started": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                "command": sys.argv, "dataset": dataset.describe(), "camera": dataset.camera.to_dict(),
+                "python": platform.python_version(), "torch": torch.__version__}
+    info["status"] = "running"
     if ckpt is not None:
-        info = read_json(run_dir / RUN_INFO_FILE)
-        info.update(status="running", resumed_at_frame=ckpt["next_frame"],
-                    resumed=datetime.now(timezone.utc).isoformat(timespec="seconds"))
+        info.update(resumed_at_frame=ckpt["next_frame"], resumed=datetime.now(timezone.utc).isoformat(timespec="seconds"))
+        st.tracker = unpickle_tracker(ckpt)
+        st.lines, st.start = ckpt["lines"], ckpt["next_frame"]
+        st.skipped = list(ckpt.get("skipped", []))
+        st.rss = list(ckpt.get("rss", []))
+        if ckpt["timer"] is not None:
+            st.timer.total.update(ckpt["timer"]["total"])
+            st.timer.calls.update(ckpt["timer"]["calls"])
+        log.info("resumed at frame %d", st.start)
+    else:
+        st.tracker = make_tracker(config, dataset)
     write_json(run_dir / RUN_INFO_FILE, info)
-    worker = None
-    try:
-        log.info("run %s on %s", config.name, dataset.describe())
-        timer = StageTimer()
-        lines = ["# index timestamp state keyframe matches fitness ms"]
-        start = 0
-        if ckpt is not None:
-            tracker = unpickle_tracker(ckpt)
-            lines, start = ckpt["lines"], ckpt["next_frame"]
-            if ckpt["timer"] is not None:
-                timer.total.update(ckpt["timer"]["total"])
-                timer.calls.update(ckpt["timer"]["calls"])
-            log.info("resumed at frame %d", start)
-        else:
-            tracker = make_tracker(config, dataset)
-        mapper = make_mapper(config, dataset.camera, tracker, run_dir)
-        if mapper is not None:
-            from ggfslam.mapping.worker import MappingWorker
+    st.mapper = make_mapper(config, dataset.camera, st.tracker, run_dir)
+    if st.mapper is not None:
+        from ggfslam.mapping.worker import MappingWorker
 
-            if ckpt is not None and ckpt["mapper"] is not None:
-                mapper.load_state(ckpt["mapper"])
-                # keyframes stored after the checkpoint are made again, under the same ids, as the run goes on
-                mapper.store.retain(ckpt["kf_frames"])
-            worker = MappingWorker(mapper, config.mapping.concurrent, config.mapping.threads)
-            attach_gcgr(config, tracker, mapper, dataset.camera)
-            for kf_id, lms in (ckpt or {}).get("pending", {}).items():
-                worker.enqueue(kf_id, lms)
-        if ckpt is not None:
-            set_rng_state(ckpt["rng"])
-        every = config.mapping.checkpoint_every
-        rss = [] if ckpt is None else list(ckpt.get("rss", []))  # (frames done, MiB): memory against length
-        show = config.runtime.progress if progress is None else progress
-        t_start = time.perf_counter()
-        with _progress(show and sys.stderr.isatty()) as bar:
-            task = bar.add_task("tracking", total=n, completed=start, fps=0.0)
-            for i in range(start, n):
-                with timer("load"):
+        if ckpt is not None and ckpt["mapper"] is not None:
+            st.mapper.load_state(ckpt["mapper"])
+            # keyframes stored after the checkpoint are made again, under the same ids, as the run goes on
+            st.mapper.store.retain(ckpt["kf_frames"])
+        elif ckpt is None:
+            st.mapper.store.retain({})  # images a run stopped before its first checkpoint left behind
+        st.worker = MappingWorker(st.mapper, config.mapping.concurrent, config.mapping.threads)
+        attach_gcgr(config, st.tracker, st.mapper, dataset.camera)
+        for kf_id, lms in (ckpt or {}).get("pending", {}).items():
+            st.worker.enqueue(kf_id, lms)
+    if ckpt is not None:
+        set_rng_state(ckpt["rng"])
+    st.consistent = st.start
+
+
+def _track_sequence(config: Config, dataset: RGBDDataset, run_dir: Path, st: _RunState, stop: _StopRequests,
+                    progress: bool | None) -> None:
+    """Track every frame from ``st.start`` (training the map on the keyframes), skipping bad frames."""
+    every = config.mapping.checkpoint_every
+    max_bad = int(config.dataset.max_bad_frames * st.n)
+    show = config.runtime.progress if progress is None else progress
+    t_start = time.perf_counter()
+    stop.tracking = True
+    with _progress(show and sys.stderr.isatty()) as bar:
+        task = bar.add_task("tracking", total=st.n, completed=st.start, fps=0.0)
+        for i in range(st.start, st.n):
+            st.frame, st.consistent = i, i
+            if stop.requested:
+                raise KeyboardInterrupt(f"{stop.requested} at frame {i}")
+            try:
+                with st.timer("load"):
                     frame = dataset[i]
-                t0 = time.perf_counter()
-                with timer("tracking"):
-                    res = tracker.track(frame)
-                ms = 1000 * (time.perf_counter() - t0)
-                lines.append(f"{frame.index} {frame.timestamp:.6f} {res.state.value} {int(res.keyframe)} "
-                             f"{res.matches} {res.fitness:.4f} {ms:.1f}")
-                if res.keyframe and worker is not None:
-                    with timer("mapping"):  # sequential mode: training; concurrent: storing the images
-                        worker.submit(res.keyframe_id, frame.index, frame.rgb, frame.depth,
-                                      _keyframe_landmarks(tracker, res.keyframe_id))
-                    if every and len(mapper.store) % every == 0:
-                        with timer("checkpoint"):
-                            save_checkpoint(run_dir, next_frame=i + 1, tracker=tracker, mapper=mapper,
-                                            pending=worker.pending(), lines=lines, timer=timer, rss=rss)
-                if (i + 1) % RSS_EVERY == 0 or i + 1 == n:
-                    rss.append((i + 1, round(current_rss_mb(), 1)))
-                bar.update(task, advance=1, fps=timer.fps("tracking"))
-        with timer("finish"):
-            tracker.finish()  # the backend's queued keyframes: their corrections belong in the trajectory
-            if worker is not None:
-                worker.finish()
-        if mapper is not None and config.mapping.final_iterations:
-            with timer("final_refinement"):
-                mapper.sync_poses()
-                mapper.train(config.mapping.final_iterations)
-        wall = time.perf_counter() - t_start
-        stamps_a, poses_a, lost_a = tracker.trajectory()  # every frame, through its optimized reference keyframe
-        write_tum_trajectory(run_dir / TRAJECTORY_FILE, stamps_a, poses_a,
-                             header=f"ggfslam {__version__} {tracker.name}: camera-to-world, all frames")
-        kf_traj = tracker.keyframe_trajectory()
-        if kf_traj is not None:
-            write_tum_trajectory(run_dir / KEYFRAMES_FILE, *kf_traj,
-                                 header=f"ggfslam {__version__} {tracker.name}: camera-to-world, keyframes")
-        if getattr(tracker, "backend", None) is not None:  # the factor graph (the odometry baseline has none)
-            from ggfslam.backend.export import write_graph_json
+            except DatasetError as e:
+                if config.dataset.on_bad_frame == "error":
+                    raise
+                _skip_frame(dataset, st, i, e, max_bad)
+                bar.update(task, advance=1)
+                continue
+            st.consistent = None
+            t0 = time.perf_counter()
+            with st.timer("tracking"):
+                res = st.tracker.track(frame)
+            ms = 1000 * (time.perf_counter() - t0)
+            st.lines.append(f"{frame.index} {frame.timestamp:.6f} {res.state.value} {int(res.keyframe)} "
+                            f"{res.matches} {res.fitness:.4f} {ms:.1f}")
+            if res.keyframe and st.worker is not None:
+                with st.timer("mapping"):  # sequential mode: training; concurrent: storing the images
+                    st.worker.submit(res.keyframe_id, frame.index, frame.rgb, frame.depth,
+                                     _keyframe_landmarks(st.tracker, res.keyframe_id))
+                if every and len(st.mapper.store) % every == 0:
+                    st.checkpoint(run_dir, i + 1)
+            if (i + 1) % RSS_EVERY == 0 or i + 1 == st.n:
+                st.rss.append((i + 1, round(current_rss_mb(), 1)))
+            bar.update(task, advance=1, fps=st.timer.fps("tracking"))
+    stop.tracking = False
+    st.frame = st.consistent = st.n
+    st.wall += time.perf_counter() - t_start
 
-            write_graph_json(run_dir / GRAPH_FILE, tracker.backend.map, dataset.camera, config.tracking,
-                             config.backend, tracker.backend.gcgr)
-        write_text_atomic(run_dir / TRACKING_LOG_FILE, "\n".join(lines) + "\n")
-        gt = dataset.gt_poses
-        if gt is not None:
-            write_tum_trajectory(run_dir / GROUNDTRUTH_FILE, dataset.timestamps, gt,
-                                 header="ground truth of the frames of this run")
-        metrics = {
-            "sequence": {"dataset": dataset.describe(), "frames": n, "width": dataset.camera.width,
-                         "height": dataset.camera.height},
-            "tracking": {"method": tracker.name, "frames": n, "frames_lost": int(lost_a.sum()),
-                         "fps": timer.fps("tracking")},
-            "backend": tracker.summary(),
-        }
-        if gt is not None:
-            metrics["trajectory"] = _trajectory_metrics(stamps_a, poses_a, dataset.timestamps, gt, config)
-        if mapper is not None:
-            with timer("map_outputs"):
-                metrics.update(_map_outputs(config, mapper, tracker, dataset, poses_a, run_dir))
-            save_checkpoint(run_dir, next_frame=n, tracker=tracker, mapper=mapper, lines=lines, timer=timer,
-                            finished=True, rss=rss)
-        metrics["system"] = {"wall_seconds": wall, "peak_rss_mb": peak_rss_mb(), "rss_mb_by_frame": rss,
-                             "stages": timer.summary()}
-        write_json(run_dir / METRICS_FILE, metrics)
+
+def _skip_frame(dataset: RGBDDataset, st: _RunState, i: int, e: DatasetError, max_bad: int) -> None:
+    """Pass over an unreadable frame: one warning, a ``skipped`` row in tracking.txt; too many end the run."""
+    st.skipped.append({"index": i, "error": str(e)})
+    log.warning("frame %d skipped: %s", i, e)
+    st.lines.append(f"{i} {float(dataset.timestamps[i]):.6f} skipped 0 0 0.0000 0.0")
+    if len(st.skipped) > max_bad:
+        raise DatasetError(e.path, f"{e.reason}; {len(st.skipped)} of {st.n} frames could not be read, more than "
+                                   f"dataset.max_bad_frames = {st.n and max_bad / st.n:.0%} allows "
+                                   f"(frames {', '.join(str(s['index']) for s in st.skipped[:10])}"
+                                   f"{', ...' if len(st.skipped) > 10 else ''})", e.line)
+
+
+def _finish_sequence(config: Config, st: _RunState) -> None:
+    """Let the backend and the mapper finish their queues, then the final map refinement."""
+    st.consistent = None
+    t0 = time.perf_counter()
+    with st.timer("finish"):
+        st.tracker.finish()  # the backend's queued keyframes: their corrections belong in the trajectory
+        if st.worker is not None:
+            st.worker.finish()
+    if st.mapper is not None and config.mapping.final_iterations:
+        with st.timer("final_refinement"):
+            st.mapper.sync_poses()
+            st.mapper.train(config.mapping.final_iterations)
+    st.wall += time.perf_counter() - t0
+
+
+def _write_trajectories(dataset: RGBDDataset, run_dir: Path, st: _RunState, note: str = ""):
+    """trajectory.txt, keyframes.txt, graph.json and tracking.txt of the frames done; returns (stamps, poses,
+    lost, frame indices) of the trajectory."""
+    stamps, poses, lost = st.tracker.trajectory()  # every frame, through its optimized reference keyframe
+    tracker = st.tracker
+    write_tum_trajectory(run_dir / TRAJECTORY_FILE, stamps, poses,
+                         header=f"ggfslam {__version__} {tracker.name}: camera-to-world, all frames{note}")
+    kf_traj = tracker.keyframe_trajectory()
+    if kf_traj is not None:
+        write_tum_trajectory(run_dir / KEYFRAMES_FILE, *kf_traj,
+                             header=f"ggfslam {__version__} {tracker.name}: camera-to-world, keyframes{note}")
+    write_text_atomic(run_dir / TRACKING_LOG_FILE, "\n".join(st.lines) + "\n")
+    return stamps, poses, lost, st.frame_indices(len(stamps))
+
+
+def _write_outputs(config: Config, dataset: RGBDDataset, run_dir: Path, st: _RunState) -> dict:
+    """Every output of a finished run (trajectories, graph, map, mesh, checkpoint) and its metrics."""
+    tracker, mapper, timer = st.tracker, st.mapper, st.timer
+    stamps_a, poses_a, lost_a, frames = _write_trajectories(dataset, run_dir, st)
+    if getattr(tracker, "backend", None) is not None:  # the factor graph (the odometry baseline has none)
+        from ggfslam.backend.export import write_graph_json
+
+        write_graph_json(run_dir / GRAPH_FILE, tracker.backend.map, dataset.camera, config.tracking,
+                         config.backend, tracker.backend.gcgr)
+    gt = dataset.gt_poses
+    if gt is not None:
+        write_tum_trajectory(run_dir / GROUNDTRUTH_FILE, dataset.timestamps, gt,
+                             header="ground truth of the frames of this run")
+    metrics = {
+        "sequence": {"dataset": dataset.describe(), "frames": st.n, "width": dataset.camera.width,
+                     "height": dataset.camera.height},
+        "tracking": {"method": tracker.name, "frames": len(stamps_a), "frames_lost": int(lost_a.sum()),
+                     "frames_skipped": len(st.skipped), "skipped": st.skipped, "fps": timer.fps("tracking")},
+        "backend": tracker.summary(),
+    }
+    if gt is not None:
+        metrics["trajectory"] = _trajectory_metrics(stamps_a, poses_a, dataset.timestamps, gt, config)
+    if mapper is not None:
+        with timer("map_outputs"):
+            metrics.update(_map_outputs(config, mapper, tracker, dataset, frames, poses_a, run_dir))
+        st.checkpoint(run_dir, st.n, finished=True)
+    metrics["system"] = {"wall_seconds": st.wall, "peak_rss_mb": peak_rss_mb(), "rss_mb_by_frame": st.rss,
+                         "stages": timer.summary()}
+    write_json(run_dir / METRICS_FILE, metrics)
+    return metrics
+
+
+def _save_stopped_run(config: Config, dataset: RGBDDataset, run_dir: Path, st: _RunState, e: BaseException) -> None:
+    """A run stopping early keeps what it has: a checkpoint when its state is whole (between frames), the
+    trajectory of the frames done, the map as gaussians.ply, and run.json saying where, why and how to go on.
+    Each step is tried on its own (a full disk may refuse some); the original error is what the caller sees."""
+    from ggfslam.checkpoint import CHECKPOINT_FILE, load_checkpoint
+
+    interrupted = isinstance(e, KeyboardInterrupt)
+    why = f"{type(e).__name__}: {e}".rstrip(": ") if str(e) else type(e).__name__
+    saved = []
+
+    def attempt(what: str, fn) -> None:
+        try:
+            fn()
+            saved.append(what)
+        except BaseException as err:  # noqa: BLE001 - salvage must not hide the error that stopped the run
+            log.warning("while stopping: %s not saved (%s: %s)", what, type(err).__name__, err)
+
+    if st.tracker is not None:
+        if st.consistent is not None and st.consistent > st.start:
+            attempt("checkpoint", lambda: st.checkpoint(run_dir, st.consistent))
+        note = f" (partial: the run stopped at frame {st.frame})"
+        attempt("trajectory", lambda: _write_trajectories(dataset, run_dir, st, note))
+        if st.mapper is not None and st.mapper.map.n_anchors > 0:
+            from ggfslam.mapping.outputs import write_map_ply
+
+            attempt("map", lambda: write_map_ply(st.mapper, run_dir / GAUSSIANS_FILE))
+    resume_from = None
+    if (run_dir / CHECKPOINT_FILE).is_file():
+        try:
+            resume_from = int(load_checkpoint(run_dir)["next_frame"])
+        except GGFSlamError:
+            resume_from = None
+    try:
         info = read_json(run_dir / RUN_INFO_FILE)
-        info.update(status="finished", finished=datetime.now(timezone.utc).isoformat(timespec="seconds"))
+        info.update(status="interrupted" if interrupted else "failed", stopped_at_frame=st.frame, error=why,
+                    saved=saved, resume_from_frame=resume_from if resume_from is not None else 0)
         write_json(run_dir / RUN_INFO_FILE, info)
-        log.info("finished: %s", metrics.get("trajectory", {}))
-        return metrics
-    except BaseException as e:
-        info = read_json(run_dir / RUN_INFO_FILE)
-        info.update(status="interrupted" if isinstance(e, KeyboardInterrupt) else "failed")
-        write_json(run_dir / RUN_INFO_FILE, info)
-        raise
-    finally:
-        if worker is not None:
-            worker.abort()  # no-op after finish(); after an error, no training goes on in the background
-        log.removeHandler(handler)
-        handler.close()
+    except BaseException as err:  # noqa: BLE001
+        log.warning("while stopping: run.json not updated (%s: %s)", type(err).__name__, err)
+    log.error("run stopped at frame %d (%s); saved: %s; `ggfslam run --resume --out %s` continues from frame %d",
+              st.frame, why, ", ".join(saved) or "nothing", run_dir, resume_from or 0)
 
 
-def _map_outputs(config: Config, mapper, tracker, dataset, poses: np.ndarray, run_dir: Path) -> dict:
+def _map_outputs(config: Config, mapper, tracker, dataset, frames: np.ndarray, poses: np.ndarray, run_dir: Path
+                 ) -> dict:
     """Write gaussians.ply (and gaussians_planarity.ply with the field) and mesh.ply fused from the baked file,
-    score the file against the map at the keyframes, render every evaluated frame; returns the
-    mapping/rendering metrics."""
+    score the file against the map at the keyframes, render every evaluated frame (``frames`` [M] with their
+    poses [M, 4, 4]); returns the mapping/rendering metrics."""
     from ggfslam.eval.rendering import ply_fidelity
     from ggfslam.gaussians.explicit import ExplicitGaussians
     from ggfslam.mapping.outputs import write_map_ply, write_planarity_ply, write_rendered_mesh
@@ -300,20 +480,23 @@ def _map_outputs(config: Config, mapper, tracker, dataset, poses: np.ndarray, ru
                                                                    config.mapping.mesh_voxel, run_dir / MESH_FILE)
         except GGFSlamError as e:  # an empty map fuses no surface: the run's other outputs still count
             log.warning("mesh.ply not written: %s", e)
-    out["rendering"] = rendering_metrics(config, mapper, dataset, poses)
+    out["rendering"] = rendering_metrics(config, mapper, dataset, frames, poses)
     return out
 
 
-def rendering_metrics(config: Config, mapper, dataset, poses: np.ndarray) -> dict:
-    """PSNR/SSIM/depth L1 of the map rendered at every ``eval_stride``-th frame's estimated pose."""
+def rendering_metrics(config: Config, mapper, dataset, frames: np.ndarray, poses: np.ndarray) -> dict:
+    """PSNR/SSIM/depth L1 of the map rendered at the estimated pose of every ``eval_stride``-th frame among
+    ``frames`` [M] (the frames with a pose, poses [M, 4, 4]; skipped frames have none)."""
     from ggfslam.eval.image import LPIPS
     from ggfslam.eval.rendering import render_metrics
     from ggfslam.mapping.keyframe_store import scaled_intrinsics
 
     c = config.mapping
     intr = scaled_intrinsics(dataset.camera, c.eval_width)
-    idx = np.arange(0, len(dataset), c.eval_stride)
-    return render_metrics(mapper, dataset, poses, idx, intr, LPIPS(config.eval.lpips_weights))
+    by_frame = np.full((len(dataset), 4, 4), np.nan)  # [N, 4, 4]
+    by_frame[frames] = poses
+    idx = np.asarray(frames)[np.asarray(frames) % c.eval_stride == 0]
+    return render_metrics(mapper, dataset, by_frame, idx, intr, LPIPS(config.eval.lpips_weights))
 
 
 def _trajectory_metrics(est_stamps, est_poses, gt_stamps, gt_poses, config: Config) -> dict:
@@ -349,6 +532,20 @@ def load_mapper(run_dir: str | Path):
     return config, mapper, ckpt
 
 
+def _frames_of_stamps(frame_stamps: np.ndarray, stamps: np.ndarray, path: Path) -> np.ndarray:
+    """Frame index [M] of each trajectory timestamp [M] (TUM files keep 6 decimals)."""
+    order = np.argsort(frame_stamps)
+    ordered = frame_stamps[order]
+    right = np.clip(np.searchsorted(ordered, stamps), 0, len(ordered) - 1)
+    left = np.maximum(right - 1, 0)
+    frames = order[np.where(np.abs(ordered[left] - stamps) <= np.abs(ordered[right] - stamps), left, right)]
+    off = np.abs(frame_stamps[frames] - stamps) > 1e-5
+    if off.any():
+        raise RunDirError(f"{path}: {int(off.sum())} timestamps match no frame of the sequence (first: "
+                          f"{stamps[off][0]:.6f}); was the run made on another selection of frames?")
+    return frames
+
+
 def evaluate(run_dir: str | Path) -> dict:
     """Recompute a run's trajectory (and rendering) metrics from its files, update ``metrics.json`` and return it."""
     run_dir = require_run_dir(run_dir)
@@ -370,8 +567,7 @@ def evaluate(run_dir: str | Path) -> dict:
     if config.mapping.enabled:
         _, mapper, _ = load_mapper(run_dir)
         dataset = dataset or open_dataset_from_config(config.dataset)
-        if len(est_poses) != len(dataset):
-            raise RunDirError(f"{run_dir}: {TRAJECTORY_FILE} has {len(est_poses)} poses for {len(dataset)} frames")
-        metrics["rendering"] = rendering_metrics(config, mapper, dataset, est_poses)
+        frames = _frames_of_stamps(np.asarray(dataset.timestamps), est_stamps, traj)
+        metrics["rendering"] = rendering_metrics(config, mapper, dataset, frames, est_poses)
     write_json(run_dir / METRICS_FILE, metrics)
     return metrics
