@@ -25,6 +25,8 @@ def parse_numeric_lines(path: str | Path, min_cols: int) -> list[tuple[int, list
         if not s or s.startswith("#"):
             continue
         fields = s.replace(",", " ").split()
+        if not fields:  # only separators: as good as blank
+            continue
         try:
             float(fields[0])
         except ValueError:
