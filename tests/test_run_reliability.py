@@ -78,6 +78,21 @@ def test_a_bad_frame_is_skipped_counted_and_marked(sequence, clean_run, tmp_path
     assert [f["index"] for f in again["rendering"]["per_frame"]] == scored
 
 
+def test_a_listed_image_that_is_missing_is_one_skipped_frame(sequence, tmp_path):
+    import shutil
+
+    seq = tmp_path / "missing"
+    shutil.copytree(sequence, seq)
+    gone = _depth_file(seq, 5)
+    gone.unlink()
+    cfg = _config(seq)
+    ds = slam.open_dataset_from_config(cfg.dataset)  # opens: the frame fails only when it is read
+    with pytest.raises(DatasetError, match="depth image not found"):
+        ds[5]
+    with pytest.raises(DatasetError, match="listed image .* not found"):  # ... unless bad frames are errors
+        slam.open_dataset_from_config(_config(seq, on_bad_frame="error").dataset)
+
+
 def test_too_many_bad_frames_end_the_run_with_its_outputs_saved(sequence, clean_run, tmp_path):
     seq, bad_file, _ = _truncated_copy(sequence, tmp_path)
     with pytest.raises(DatasetError, match=r"1 of 24 frames could not be read, more than dataset.max_bad_frames"):

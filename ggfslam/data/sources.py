@@ -92,6 +92,7 @@ def open_dataset_from_config(cfg: DatasetConfig) -> RGBDDataset:
         root, kind, camera_arg = expand_path(cfg.path), cfg.kind, camera
         if kind == "auto":
             kind = detect_kind(root)
-    kwargs = {"max_time_diff": cfg.max_time_diff} if kind == "tum" else {}
+    # a listed image that is missing is one bad frame, skipped at its turn (dataset.on_bad_frame), not a refusal
+    kwargs = {"max_time_diff": cfg.max_time_diff, "check_files": cfg.on_bad_frame == "error"} if kind == "tum" else {}
     return open_dataset(kind, root, camera=camera_arg, start=cfg.start, stop=cfg.stop, stride=cfg.stride,
                         resize=cfg.resize, **kwargs)

@@ -119,6 +119,9 @@ class TUMDataset(ImageFileDataset):
     too (``n_outside_gt``) and every kept frame gets the pose interpolated at its colour timestamp (slerp /
     lerp between the bracketing samples, however far apart they are).
 
+    With ``check_files`` every listed image must exist when the folder is opened; without, a missing one fails
+    only when its frame is read (a run then skips that frame, ``dataset.on_bad_frame``).
+
     Intrinsics: ``camera`` if given (its ``depth_scale`` is used as is), else ``camera.yaml`` in ``root``,
     else the published TUM intrinsics when the folder name says freiburg1/2/3. Images are not undistorted:
     the distortion stays in ``camera.distortion``.
@@ -133,14 +136,15 @@ class TUMDataset(ImageFileDataset):
         stop: int | None = None,
         stride: int = 1,
         resize: tuple[int, int] | None = None,
+        check_files: bool = True,
     ):
         super().__init__(root, start=start, stop=stop, stride=stride, resize=resize)
         if not (isinstance(max_time_diff, (int, float)) and max_time_diff >= 0):
             raise DatasetError(self.root, f"max_time_diff must be a number >= 0 seconds, got {max_time_diff!r}")
         self._cam, self.camera_source = self._find_camera(camera)
         rgb_list, depth_list = self.root / "rgb.txt", self.root / "depth.txt"
-        rgb_stamps, rgb_files = read_image_list(rgb_list, self.root)  # [Nr]
-        depth_stamps, depth_files = read_image_list(depth_list, self.root)  # [Nd]
+        rgb_stamps, rgb_files = read_image_list(rgb_list, self.root, check_files)  # [Nr]
+        depth_stamps, depth_files = read_image_list(depth_list, self.root, check_files)  # [Nd]
         ri, di = associate(rgb_stamps, depth_stamps, max_time_diff)
         if len(ri) == 0:
             raise DatasetError(rgb_list, f"no colour frame has a depth frame in {depth_list.name} within "
