@@ -152,6 +152,7 @@ class _RunState:
     start: int = 0  # first frame this invocation tracks
     frame: int = 0  # the frame being processed
     consistent: int | None = None  # frames [0, consistent) are done and the state is whole (None: mid-update)
+    checkpointed: int | None = None  # the frame checkpoint.pt continues at (None: no checkpoint)
     wall: float = 0.0
 
     def frame_indices(self, n_poses: int) -> np.ndarray:
@@ -167,6 +168,7 @@ class _RunState:
             save_checkpoint(run_dir, next_frame=next_frame, tracker=self.tracker, mapper=self.mapper,
                             pending=None if self.worker is None else self.worker.pending(), lines=self.lines,
                             timer=self.timer, rss=self.rss, skipped=self.skipped, finished=finished)
+        self.checkpointed = next_frame
 
 
 class _StopRequests:
@@ -268,6 +270,7 @@ def _restore_or_start(config: Config, dataset: RGBDDataset, run_dir: Path, ckpt:
         info.update(resumed_at_frame=ckpt["next_frame"], resumed=datetime.now(timezone.utc).isoformat(timespec="seconds"))
         st.tracker = unpickle_tracker(ckpt)
         st.lines, st.start = ckpt["lines"], ckpt["next_frame"]
+        st.checkpointed = st.start
         st.skipped = list(ckpt.get("skipped", []))
         st.rss = list(ckpt.get("rss", []))
         if ckpt["timer"] is not None:
@@ -418,8 +421,6 @@ def _save_stopped_run(config: Config, dataset: RGBDDataset, run_dir: Path, st: _
     """A run stopping early keeps what it has: a checkpoint when its state is whole (between frames), the
     trajectory of the frames done, the map as gaussians.ply, and run.json saying where, why and how to go on.
     Each step is tried on its own (a full disk may refuse some); the original error is what the caller sees."""
-    from ggfslam.checkpoint import CHECKPOINT_FILE, load_checkpoint
-
     interrupted = isinstance(e, KeyboardInterrupt)
     why = f"{type(e).__name__}: {e}".rstrip(": ") if str(e) else type(e).__name__
     saved = []
@@ -428,7 +429,7 @@ def _save_stopped_run(config: Config, dataset: RGBDDataset, run_dir: Path, st: _
         try:
             fn()
             saved.append(what)
-        except BaseException as err:  # noqa: BLE001 - salvage must not hide the error that stopped the run
+        except Exception as err:  # salvage must not hide the error that stopped the run (Ctrl-C still stops it)
             log.warning("while stopping: %s not saved (%s: %s)", what, type(err).__name__, err)
 
     if st.tracker is not None:
@@ -440,21 +441,16 @@ def _save_stopped_run(config: Config, dataset: RGBDDataset, run_dir: Path, st: _
             from ggfslam.mapping.outputs import write_map_ply
 
             attempt("map", lambda: write_map_ply(st.mapper, run_dir / GAUSSIANS_FILE))
-    resume_from = None
-    if (run_dir / CHECKPOINT_FILE).is_file():
-        try:
-            resume_from = int(load_checkpoint(run_dir)["next_frame"])
-        except GGFSlamError:
-            resume_from = None
+    resume_from = st.checkpointed or 0
     try:
         info = read_json(run_dir / RUN_INFO_FILE)
         info.update(status="interrupted" if interrupted else "failed", stopped_at_frame=st.frame, error=why,
-                    saved=saved, resume_from_frame=resume_from if resume_from is not None else 0)
+                    saved=saved, resume_from_frame=resume_from)
         write_json(run_dir / RUN_INFO_FILE, info)
-    except BaseException as err:  # noqa: BLE001
+    except Exception as err:
         log.warning("while stopping: run.json not updated (%s: %s)", type(err).__name__, err)
     log.error("run stopped at frame %d (%s); saved: %s; `ggfslam run --resume --out %s` continues from frame %d",
-              st.frame, why, ", ".join(saved) or "nothing", run_dir, resume_from or 0)
+              st.frame, why, ", ".join(saved) or "nothing", run_dir, resume_from)
 
 
 def _map_outputs(config: Config, mapper, tracker, dataset, frames: np.ndarray, poses: np.ndarray, run_dir: Path
