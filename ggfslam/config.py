@@ -234,6 +234,13 @@ class BackendConfig(_Section):
     """Run bundle adjustment in a background thread (tracking never waits); False = sequential, repeatable."""
     loop_closure: bool = True
     """Detect revisited places and correct the whole trajectory by pose-graph optimization."""
+    global_ba: bool = True
+    """After each loop closure, bundle-adjust every keyframe and landmark (oldest keyframe fixed), as ORB-SLAM does:
+    the pose graph moves keyframes as rigid blocks, which leaves keyframes of different laps that see the same
+    surfaces disagreeing (synthetic:2000: 1.5 cm / 0.46 deg median without, 0.25 cm / 0.05 deg with; ATE 3.18 ->
+    0.32 cm, for 0.5 s per loop)."""
+    global_ba_iterations: int = 10
+    """Levenberg-Marquardt iterations of the global bundle adjustment."""
 
 
 class RenderConfig(_Section):

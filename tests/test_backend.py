@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 from ggfslam.backend import local_ba
 from ggfslam.backend.backend import Backend
 from ggfslam.backend.graph import L, X, calibrations, observation_factor
-from ggfslam.backend.local_ba import local_bundle_adjustment
+from ggfslam.backend.local_ba import global_bundle_adjustment, local_bundle_adjustment
 from ggfslam.backend.slam_map import KeyFrame, SlamMap
 from ggfslam.config import BackendConfig, TrackingConfig
 from ggfslam.data.types import Camera
@@ -136,3 +136,17 @@ def test_an_indeterminate_system_is_counted_logged_once_and_keeps_the_estimate(m
     assert summary["ba_failed"] == 2 and summary["ba_runs"] == 0
     assert summary["ba_first_failure"].startswith("keyframe 3: indeterminate system")
     assert sum("local BA skipped" in r.getMessage() for r in caplog.records) == 1
+
+
+def test_global_ba_optimizes_every_keyframe_with_the_oldest_held():
+    rng = np.random.default_rng(3)
+    smap, truth, pts = _build_map(rng, n_kf=6)
+    for k in range(1, 6):
+        smap.keyframes[k].T_wc = truth[k] @ make_pose(Rotation.from_rotvec(rng.normal(scale=0.01, size=3)).as_matrix(),
+                                                      rng.normal(scale=0.02, size=3))
+    stats = global_bundle_adjustment(smap, CAM, TCFG, BackendConfig(global_ba_iterations=20))
+    assert stats.keyframes == 6 and stats.fixed == 1 and not stats.failed
+    np.testing.assert_array_equal(smap.keyframes[0].T_wc, truth[0])
+    for k in range(1, 6):
+        d = invert(truth[k]) @ smap.keyframes[k].T_wc
+        assert np.linalg.norm(d[:3, 3]) < 1e-3 and Rotation.from_matrix(d[:3, :3]).magnitude() < 1e-3

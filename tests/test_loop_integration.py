@@ -18,11 +18,11 @@ def lap():
     return SyntheticSequence(n_frames=1100, width=320, height=240, trajectory="orbit", seed=5, depth_noise=True)
 
 
-def _run(seq, loop_closure: bool):
+def _run(seq, loop_closure: bool, global_ba: bool = True):
     # few features and no landmark fusion: the lap drifts by about a centimetre, which the loop has to remove
     # (with fusion the local map itself re-finds the start of the lap and leaves the loop little to correct)
     tcfg = TrackingConfig(n_features=300)
-    backend = Backend(seq.camera, tcfg, BackendConfig(loop_closure=loop_closure, fusion=False))
+    backend = Backend(seq.camera, tcfg, BackendConfig(loop_closure=loop_closure, fusion=False, global_ba=global_ba))
     tracker = OrbTracker(seq.camera, tcfg, backend)
     for i in FRAMES:
         tracker.track(seq[i])
@@ -35,7 +35,7 @@ def _run(seq, loop_closure: bool):
 
 @pytest.fixture(scope="module")
 def runs(lap):
-    return {flag: _run(lap, flag) for flag in (False, True)}
+    return {flag: _run(lap, flag) for flag in (False, True)} | {"pose graph only": _run(lap, True, global_ba=False)}
 
 
 def test_full_lap_closes_a_correct_loop(lap, runs):
@@ -53,3 +53,9 @@ def test_loop_closure_lowers_the_trajectory_error(runs):
     (no_loop_backend, ate_without), (_, ate_with) = runs[False], runs[True]
     assert not no_loop_backend.map.loops
     assert ate_with < 0.9 * ate_without, (ate_with, ate_without)  # measured: 0.86 vs 1.01 cm
+
+
+def test_global_ba_after_the_loop_makes_the_laps_agree(runs):
+    (with_ba, ate_with), (graph_only, ate_graph_only) = runs[True], runs["pose graph only"]
+    assert with_ba.summary()["global_ba_runs"] >= 1 and graph_only.summary()["global_ba_runs"] == 0
+    assert ate_with <= ate_graph_only + 0.02, (ate_with, ate_graph_only)

@@ -36,6 +36,9 @@ class BackendStats:
     fused_landmarks: int = 0
     loops: list[dict] = field(default_factory=list)
     ba_failed: int = 0  # local BAs whose system was indeterminate (the map kept its estimate)
+    # plain defaults (class attributes), so trackers pickled before these counters existed still resume
+    global_ba_runs: int = 0  # global BAs (after loop closures)
+    global_ba_seconds: float = 0.0  # their total time
     ba_failure: str = ""  # the first such failure, logged once
 
 
@@ -160,6 +163,26 @@ class Backend:
         self.stats.loops.append({"query": loop.query_id, "match": loop.match_id, "inliers": loop.inliers,
                                  "seconds": time.perf_counter() - t0})
         log.info("loop closed: keyframe %d -> %d (%d inliers)", loop.query_id, loop.match_id, loop.inliers)
+        if self.bcfg.global_ba:
+            self._global_ba()
+
+    def _global_ba(self) -> None:
+        """Every keyframe and landmark bundle-adjusted together (after a loop closure, ``backend.global_ba``)."""
+        from ggfslam.backend.local_ba import global_bundle_adjustment
+
+        stats = global_bundle_adjustment(self.map, self.camera, self.tcfg, self.bcfg)
+        if stats is None:
+            return
+        if stats.failed:
+            self.stats.ba_failed += 1
+            log.warning("global BA skipped: %s", stats.failed)
+            return
+        self.stats.global_ba_runs += 1
+        self.stats.global_ba_seconds += stats.seconds
+        self.stats.outliers_removed += stats.outliers
+        self.loop_detector.update_poses(self.map.poses())
+        log.info("global BA: %d keyframes, %d landmarks, error %.0f -> %.0f (%.1f s)", stats.keyframes,
+                 stats.landmarks, stats.error_before, stats.error_after, stats.seconds)
 
     def place_candidates(self, descriptors, top_k: int) -> list[int]:
         """Keyframes that look most like a set of ORB descriptors (for relocalization), best first."""
@@ -202,6 +225,7 @@ class Backend:
             "ba_ms_max": 1000 * float(np.max(s.ba_seconds)) if s.ba_seconds else 0.0,
             "landmarks_culled": s.landmarks_culled, "outliers_removed": s.outliers_removed,
             "fused_observations": s.fused_observations, "fused_landmarks": s.fused_landmarks,
-            "loops": len(s.loops),
+            "loops": len(s.loops), "global_ba_runs": s.global_ba_runs,
+            "global_ba_ms_mean": 1000 * s.global_ba_seconds / max(s.global_ba_runs, 1),
             **({"gcgr": self.gcgr.summary()} if self.gcgr is not None else {}),
         }

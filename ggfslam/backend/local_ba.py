@@ -80,13 +80,18 @@ class LocalGraph:
 
 
 def local_graph(smap: SlamMap, kf_id: int, camera: Camera, tcfg: TrackingConfig, bcfg: BackendConfig,
-                gcgr=None) -> LocalGraph | None:
+                gcgr=None, window: list[int] | None = None) -> LocalGraph | None:
     """The local BA graph around keyframe ``kf_id`` at the map's current estimates; None if too small.
 
-    With a ``GCGRSource`` every optimized (not fixed) keyframe also gets its GCGR depth and normal factors."""
+    ``window``: the keyframes to optimize (default: ``kf_id``'s covisible window); keyframes outside it that see
+    its landmarks are held fixed, and without any the oldest of the window is. With a ``GCGRSource`` every
+    optimized (not fixed) keyframe also gets its GCGR depth and normal factors."""
     level_scale = tcfg.scale_factor ** np.arange(tcfg.n_levels)
     with smap.lock:  # snapshot, so tracking can go on while the optimizer runs
-        window = smap.local_keyframes(kf_id, bcfg.window, temporal=bcfg.temporal_window)
+        if window is None:
+            window = smap.local_keyframes(kf_id, bcfg.window, temporal=bcfg.temporal_window)
+        else:
+            window = [k for k in window if k in smap.keyframes]
         lms = smap.landmarks_of(window)
         obs = []  # (kf, lm, kp)
         for lm in lms:
@@ -159,19 +164,22 @@ def local_graph(smap: SlamMap, kf_id: int, camera: Camera, tcfg: TrackingConfig,
 
 
 def local_bundle_adjustment(smap: SlamMap, kf_id: int, camera: Camera, tcfg: TrackingConfig,
-                            bcfg: BackendConfig, gcgr=None) -> BAStats | None:
-    """Optimize the window around keyframe ``kf_id`` with LM and drop outlier observations; None if too small.
+                            bcfg: BackendConfig, gcgr=None, window: list[int] | None = None,
+                            iterations: int | None = None) -> BAStats | None:
+    """Optimize the window around keyframe ``kf_id`` (or ``window``, see ``local_graph``) with LM for
+    ``iterations`` (default ``backend.iterations``) and drop outlier observations; None if too small.
 
     With a ``GCGRSource`` every optimized (not fixed) keyframe also gets its GCGR depth and normal factors."""
     t0 = time.perf_counter()
-    lg = local_graph(smap, kf_id, camera, tcfg, bcfg, gcgr)
+    iterations = bcfg.iterations if iterations is None else iterations
+    lg = local_graph(smap, kf_id, camera, tcfg, bcfg, gcgr, window)
     if lg is None:
         return None
     graph, values, window, fixed, lms, obs = lg.graph, lg.values, lg.window, lg.fixed, lg.lms, lg.obs
     factors, sigmas, feats, planes_w = lg.obs_factors, lg.sigmas, lg.feats, lg.planes_w
     err0 = graph.error(values)
     try:
-        result = optimize_lm(graph, values, bcfg.iterations)
+        result = optimize_lm(graph, values, iterations)
     except IndeterminateSystem as e:  # e.g. a landmark seen once without depth: keep the old estimate
         return BAStats(len(window), len(fixed), len(lms), len(obs), 0, err0, err0, time.perf_counter() - t0,
                        lg.n_plane_obs, lg.n_gcgr, failed=f"indeterminate system: {e}")
@@ -197,7 +205,7 @@ def local_bundle_adjustment(smap: SlamMap, kf_id: int, camera: Camera, tcfg: Tra
                 clean.add(factor)
         graph = clean
         try:
-            result = optimize_lm(graph, result, max(bcfg.iterations // 2, 3))
+            result = optimize_lm(graph, result, max(iterations // 2, 3))
         except IndeterminateSystem:  # removing the outliers left a variable free: keep the first solution
             pass
     err1 = graph.error(result)
@@ -214,3 +222,14 @@ def local_bundle_adjustment(smap: SlamMap, kf_id: int, camera: Camera, tcfg: Tra
             smap.planes[pid] = result.atOrientedPlane3(P(pid)).planeCoefficients()
     return BAStats(len(window), len(fixed), len(lms), len(obs), len(outliers), err0, err1,
                    time.perf_counter() - t0, lg.n_plane_obs, lg.n_gcgr)
+
+
+def global_bundle_adjustment(smap: SlamMap, camera: Camera, tcfg: TrackingConfig, bcfg: BackendConfig
+                             ) -> BAStats | None:
+    """Bundle-adjust every keyframe and landmark, the oldest keyframe held (after a loop closure)."""
+    with smap.lock:
+        every = sorted(smap.keyframes)
+    if len(every) < 2:
+        return None
+    return local_bundle_adjustment(smap, every[-1], camera, tcfg, bcfg, window=every,
+                                   iterations=bcfg.global_ba_iterations)
