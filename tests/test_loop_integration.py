@@ -18,11 +18,12 @@ def lap():
     return SyntheticSequence(n_frames=1100, width=320, height=240, trajectory="orbit", seed=5, depth_noise=True)
 
 
-def _run(seq, loop_closure: bool, global_ba: bool = True):
-    # few features and no landmark fusion: the lap drifts by about a centimetre, which the loop has to remove
-    # (with fusion the local map itself re-finds the start of the lap and leaves the loop little to correct)
-    tcfg = TrackingConfig(n_features=300)
-    backend = Backend(seq.camera, tcfg, BackendConfig(loop_closure=loop_closure, fusion=False, global_ba=global_ba))
+def _run(seq, loop_closure: bool, global_ba: bool = True, sparse: bool = True):
+    # sparse: few features and no landmark fusion: the lap drifts by about a centimetre, which the loop has to
+    # remove (with fusion the local map itself re-finds the start of the lap and leaves the loop little to correct)
+    tcfg = TrackingConfig(n_features=300) if sparse else TrackingConfig()
+    backend = Backend(seq.camera, tcfg, BackendConfig(loop_closure=loop_closure, fusion=not sparse,
+                                                      global_ba=global_ba))
     tracker = OrbTracker(seq.camera, tcfg, backend)
     for i in FRAMES:
         tracker.track(seq[i])
@@ -35,7 +36,8 @@ def _run(seq, loop_closure: bool, global_ba: bool = True):
 
 @pytest.fixture(scope="module")
 def runs(lap):
-    return {flag: _run(lap, flag) for flag in (False, True)} | {"pose graph only": _run(lap, True, global_ba=False)}
+    return {flag: _run(lap, flag) for flag in (False, True)} | {
+        f"default{'' if ba else ' without global BA'}": _run(lap, True, global_ba=ba, sparse=False) for ba in (True, False)}
 
 
 def test_full_lap_closes_a_correct_loop(lap, runs):
@@ -55,7 +57,9 @@ def test_loop_closure_lowers_the_trajectory_error(runs):
     assert ate_with < 0.9 * ate_without, (ate_with, ate_without)  # measured: 0.86 vs 1.01 cm
 
 
-def test_global_ba_after_the_loop_makes_the_laps_agree(runs):
-    (with_ba, ate_with), (graph_only, ate_graph_only) = runs[True], runs["pose graph only"]
-    assert with_ba.summary()["global_ba_runs"] >= 1 and graph_only.summary()["global_ba_runs"] == 0
-    assert ate_with <= ate_graph_only + 0.02, (ate_with, ate_graph_only)
+def test_global_ba_after_the_loop_lowers_the_error_further(runs):
+    (with_ba, ate_with), (graph_only, ate_graph_only) = runs["default"], runs["default without global BA"]
+    assert with_ba.map.loops and with_ba.summary()["global_ba_runs"] == len(with_ba.map.loops)
+    assert graph_only.summary()["global_ba_runs"] == 0
+    assert ate_with < 0.97 * ate_graph_only, (ate_with, ate_graph_only)  # measured: 0.87 vs 0.93 cm
+    assert runs[True][0].summary()["global_ba_runs"] == 0  # skipped without fusion

@@ -163,7 +163,7 @@ class Backend:
         self.stats.loops.append({"query": loop.query_id, "match": loop.match_id, "inliers": loop.inliers,
                                  "seconds": time.perf_counter() - t0})
         log.info("loop closed: keyframe %d -> %d (%d inliers)", loop.query_id, loop.match_id, loop.inliers)
-        if self.bcfg.global_ba:
+        if self.bcfg.global_ba and self.bcfg.fusion:
             self._global_ba()
 
     def _global_ba(self) -> None:
