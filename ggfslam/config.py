@@ -235,12 +235,12 @@ class BackendConfig(_Section):
     loop_closure: bool = True
     """Detect revisited places and correct the whole trajectory by pose-graph optimization."""
     global_ba: bool = True
-    """After each loop closure, bundle-adjust every keyframe and landmark (oldest keyframe fixed, the loops kept as
-    edges), as ORB-SLAM does: the pose graph moves keyframes as rigid blocks, which leaves keyframes of different
-    laps that see the same surfaces disagreeing (synthetic:2000: 1.5 cm / 0.46 deg median without, 0.25 cm /
-    0.05 deg with; ATE 3.18 -> 0.32 cm, for 0.5 s per loop; one lap of the room at 320x240: 0.93 -> 0.87 and
-    2.36 -> 1.22 cm). Needs ``fusion`` (points merged across the loop tie its two sides together): without it,
-    it made those laps worse (0.93 -> 1.18, 0.84 -> 1.57 cm) and is skipped."""
+    """After each loop closure, bundle-adjust every keyframe and landmark (oldest keyframe fixed), as ORB-SLAM does:
+    the pose graph moves keyframes as rigid blocks, which leaves keyframes of different laps that see the same
+    surfaces disagreeing (synthetic:2000: 1.5 cm / 0.46 deg median without, 0.25 cm / 0.05 deg with; ATE 3.18 ->
+    0.32 cm, for 0.56 s per loop; one lap of the room at 320x240, two seeds: 0.93 -> 0.92 and 2.36 -> 0.93 cm).
+    Needs ``fusion`` (points merged across the loop tie its two sides together): without it, it made those laps
+    worse (0.93 -> 1.18, 0.84 -> 1.57 cm) and is skipped."""
     global_ba_iterations: int = 10
     """Levenberg-Marquardt iterations of the global bundle adjustment."""
 

@@ -80,13 +80,12 @@ class LocalGraph:
 
 
 def local_graph(smap: SlamMap, kf_id: int, camera: Camera, tcfg: TrackingConfig, bcfg: BackendConfig,
-                gcgr=None, window: list[int] | None = None, loops: bool = False) -> LocalGraph | None:
+                gcgr=None, window: list[int] | None = None) -> LocalGraph | None:
     """The local BA graph around keyframe ``kf_id`` at the map's current estimates; None if too small.
 
     ``window``: the keyframes to optimize (default: ``kf_id``'s covisible window); keyframes outside it that see
-    its landmarks are held fixed, and without any the oldest of the window is. With ``loops`` the closed loops
-    between keyframes of the graph are kept as the pose-graph edges they were closed with. With a ``GCGRSource``
-    every optimized (not fixed) keyframe also gets its GCGR depth and normal factors."""
+    its landmarks are held fixed, and without any the oldest of the window is. With a ``GCGRSource`` every
+    optimized (not fixed) keyframe also gets its GCGR depth and normal factors."""
     level_scale = tcfg.scale_factor ** np.arange(tcfg.n_levels)
     with smap.lock:  # snapshot, so tracking can go on while the optimizer runs
         if window is None:
@@ -119,7 +118,6 @@ def local_graph(smap: SlamMap, kf_id: int, camera: Camera, tcfg: TrackingConfig,
         if not fixed:  # the gauge: hold the oldest keyframe so the window cannot drift as a whole
             fixed = {min(window)}
         # dense-odometry links (keyframe, other keyframe, T_other_keyframe) hold textureless keyframes in place
-        loop_edges = list(smap.loops) if loops else []
         links = [(k, *smap.keyframes[k].meta["odometry_link"]) for k in window
                  if "odometry_link" in smap.keyframes[k].meta]
         for _, other, _ in links:
@@ -143,10 +141,6 @@ def local_graph(smap: SlamMap, kf_id: int, camera: Camera, tcfg: TrackingConfig,
         values.insert(L(int(lm)), gtsam.Point3(*p))
     for k, other, T_other_k in links:
         graph.add(odometry_link_factor(other, k, T_other_k, tcfg.dense_link_sigmas))
-    for match, query, T_mq, cov in loop_edges:
-        if match in poses and query in poses:
-            graph.add(gtsam.BetweenFactorPose3(X(match), X(query), gtsam.Pose3(T_mq),
-                                               gtsam.noiseModel.Gaussian.Covariance(cov)))
     for pid, pw in planes_w.items():
         values.insert(P(pid), gtsam.OrientedPlane3(*pw))
     for k, pid, z in plane_obs:
@@ -171,14 +165,14 @@ def local_graph(smap: SlamMap, kf_id: int, camera: Camera, tcfg: TrackingConfig,
 
 def local_bundle_adjustment(smap: SlamMap, kf_id: int, camera: Camera, tcfg: TrackingConfig,
                             bcfg: BackendConfig, gcgr=None, window: list[int] | None = None,
-                            iterations: int | None = None, loops: bool = False) -> BAStats | None:
+                            iterations: int | None = None) -> BAStats | None:
     """Optimize the window around keyframe ``kf_id`` (or ``window``, see ``local_graph``) with LM for
     ``iterations`` (default ``backend.iterations``) and drop outlier observations; None if too small.
 
     With a ``GCGRSource`` every optimized (not fixed) keyframe also gets its GCGR depth and normal factors."""
     t0 = time.perf_counter()
     iterations = bcfg.iterations if iterations is None else iterations
-    lg = local_graph(smap, kf_id, camera, tcfg, bcfg, gcgr, window, loops)
+    lg = local_graph(smap, kf_id, camera, tcfg, bcfg, gcgr, window)
     if lg is None:
         return None
     graph, values, window, fixed, lms, obs = lg.graph, lg.values, lg.window, lg.fixed, lg.lms, lg.obs
@@ -232,11 +226,10 @@ def local_bundle_adjustment(smap: SlamMap, kf_id: int, camera: Camera, tcfg: Tra
 
 def global_bundle_adjustment(smap: SlamMap, camera: Camera, tcfg: TrackingConfig, bcfg: BackendConfig
                              ) -> BAStats | None:
-    """Bundle-adjust every keyframe and landmark, the oldest keyframe held and the closed loops kept as edges
-    (after a loop closure)."""
+    """Bundle-adjust every keyframe and landmark, the oldest keyframe held (after a loop closure)."""
     with smap.lock:
         every = sorted(smap.keyframes)
     if len(every) < 2:
         return None
     return local_bundle_adjustment(smap, every[-1], camera, tcfg, bcfg, window=every,
-                                   iterations=bcfg.global_ba_iterations, loops=True)
+                                   iterations=bcfg.global_ba_iterations)
