@@ -78,7 +78,7 @@ class RestrictedUnpickler(pickle._Unpickler):
     def _load_reduce(self):
         args = self.stack.pop()
         func = self.stack[-1]
-        allowed = func in _CALLABLE or type(func) in _CALLABLE or (isinstance(func, type) and (
+        allowed = func in _CALLABLE or (isinstance(func, type) and (
             issubclass(func, enum.Enum) or issubclass(func, np.dtype)))
         if not allowed:
             raise UnsafeCheckpoint(f"it calls {getattr(func, '__qualname__', func)!r}, which loading a ggfslam "

@@ -219,13 +219,11 @@ def run(config: Config, out_dir: str | Path, overwrite: bool = False, progress: 
             metrics = _write_outputs(config, dataset, run_dir, st)
         info = read_json(run_dir / RUN_INFO_FILE)
         info.update(status="finished", finished=datetime.now(timezone.utc).isoformat(timespec="seconds"))
-        for key in ("stopped_at_frame", "error", "resume_from_frame"):
-            info.pop(key, None)
         write_json(run_dir / RUN_INFO_FILE, info)
         log.info("finished: %s", metrics.get("trajectory", {}))
         return metrics
     except BaseException as e:
-        _save_stopped_run(config, dataset, run_dir, st, e)
+        _save_stopped_run(dataset, run_dir, st, e)
         raise
     finally:
         if st.worker is not None:
@@ -258,10 +256,10 @@ def _restore_or_start(config: Config, dataset: RGBDDataset, run_dir: Path, ckpt:
     """Tracker, mapper and worker: new, or as the checkpoint left them; run.json says the run is running."""
     from ggfslam.checkpoint import set_rng_state, unpickle_tracker
 
-    info = read_json(run_dir / RUN_INFO_FILE) if (run_dir / RUN_INFO_FILE).is_file() else {}
-    for key in ("stopped_at_frame", "error", "resume_from_frame"):
+    info = read_json(run_dir / RUN_INFO_FILE)  # {} for a new run; a resumed one keeps its record
+    for key in ("stopped_at_frame", "error", "saved", "resume_from_frame"):  # written by _save_stopped_run
         info.pop(key, None)
-    if not info or not (ckpt is not None or info.get("status") in ("failed", "interrupted", "running")):
+    if not info:
         info = {"ggfslam_version": __version__, "started": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                 "command": sys.argv, "dataset": dataset.describe(), "camera": dataset.camera.to_dict(),
                 "python": platform.python_version(), "torch": torch.__version__}
@@ -370,9 +368,9 @@ def _finish_sequence(config: Config, st: _RunState) -> None:
     st.wall += time.perf_counter() - t0
 
 
-def _write_trajectories(dataset: RGBDDataset, run_dir: Path, st: _RunState, note: str = ""):
-    """trajectory.txt, keyframes.txt, graph.json and tracking.txt of the frames done; returns (stamps, poses,
-    lost, frame indices) of the trajectory."""
+def _write_trajectories(run_dir: Path, st: _RunState, note: str = ""):
+    """trajectory.txt, keyframes.txt and tracking.txt of the frames done; returns (stamps, poses, lost, frame
+    indices) of the trajectory."""
     stamps, poses, lost = st.tracker.trajectory()  # every frame, through its optimized reference keyframe
     tracker = st.tracker
     write_tum_trajectory(run_dir / TRAJECTORY_FILE, stamps, poses,
@@ -388,7 +386,7 @@ def _write_trajectories(dataset: RGBDDataset, run_dir: Path, st: _RunState, note
 def _write_outputs(config: Config, dataset: RGBDDataset, run_dir: Path, st: _RunState) -> dict:
     """Every output of a finished run (trajectories, graph, map, mesh, checkpoint) and its metrics."""
     tracker, mapper, timer = st.tracker, st.mapper, st.timer
-    stamps_a, poses_a, lost_a, frames = _write_trajectories(dataset, run_dir, st)
+    stamps_a, poses_a, lost_a, frames = _write_trajectories(run_dir, st)
     if getattr(tracker, "backend", None) is not None:  # the factor graph (the odometry baseline has none)
         from ggfslam.backend.export import write_graph_json
 
@@ -417,7 +415,7 @@ def _write_outputs(config: Config, dataset: RGBDDataset, run_dir: Path, st: _Run
     return metrics
 
 
-def _save_stopped_run(config: Config, dataset: RGBDDataset, run_dir: Path, st: _RunState, e: BaseException) -> None:
+def _save_stopped_run(dataset: RGBDDataset, run_dir: Path, st: _RunState, e: BaseException) -> None:
     """A run stopping early keeps what it has: a checkpoint when its state is whole (between frames), the
     trajectory of the frames done, the map as gaussians.ply, and run.json saying where, why and how to go on.
     Each step is tried on its own (a full disk may refuse some); the original error is what the caller sees."""
@@ -436,7 +434,7 @@ def _save_stopped_run(config: Config, dataset: RGBDDataset, run_dir: Path, st: _
         if st.consistent is not None and st.consistent > st.start:
             attempt("checkpoint", lambda: st.checkpoint(run_dir, st.consistent))
         note = f" (partial: the run stopped at frame {st.frame})"
-        attempt("trajectory", lambda: _write_trajectories(dataset, run_dir, st, note))
+        attempt("trajectory", lambda: _write_trajectories(run_dir, st, note))
         if st.mapper is not None and st.mapper.map.n_anchors > 0:
             from ggfslam.mapping.outputs import write_map_ply
 
@@ -462,8 +460,8 @@ def _map_outputs(config: Config, mapper, tracker, dataset, frames: np.ndarray, p
     from ggfslam.gaussians.explicit import ExplicitGaussians
     from ggfslam.mapping.outputs import write_map_ply, write_planarity_ply, write_rendered_mesh
 
-    out = {"mapping": mapper.stats()}
-    g = mapper.bake_gaussians()  # once for both files (with view-dependent decoders it reads every keyframe)
+    g = mapper.bake_gaussians()  # once for the count and both files (view-dependent decoders read every keyframe)
+    out = {"mapping": mapper.stats(g)}
     out["mapping"]["ply_gaussians"] = write_map_ply(mapper, run_dir / GAUSSIANS_FILE, g)
     if mapper.ggf is not None:
         write_planarity_ply(mapper, run_dir / PLANARITY_FILE, g)
@@ -530,15 +528,13 @@ def load_mapper(run_dir: str | Path):
 
 def _frames_of_stamps(frame_stamps: np.ndarray, stamps: np.ndarray, path: Path) -> np.ndarray:
     """Frame index [M] of each trajectory timestamp [M] (TUM files keep 6 decimals)."""
-    order = np.argsort(frame_stamps)
-    ordered = frame_stamps[order]
-    right = np.clip(np.searchsorted(ordered, stamps), 0, len(ordered) - 1)
-    left = np.maximum(right - 1, 0)
-    frames = order[np.where(np.abs(ordered[left] - stamps) <= np.abs(ordered[right] - stamps), left, right)]
-    off = np.abs(frame_stamps[frames] - stamps) > 1e-5
-    if off.any():
-        raise RunDirError(f"{path}: {int(off.sum())} timestamps match no frame of the sequence (first: "
-                          f"{stamps[off][0]:.6f}); was the run made on another selection of frames?")
+    from ggfslam.data.tum import associate
+
+    pose_idx, frames = associate(stamps, frame_stamps, 1e-5)  # pose_idx comes back sorted
+    if len(pose_idx) != len(stamps):
+        off = np.setdiff1d(np.arange(len(stamps)), pose_idx)
+        raise RunDirError(f"{path}: {len(off)} timestamps match no frame of the sequence (first: "
+                          f"{stamps[off[0]]:.6f}); was the run made on another selection of frames?")
     return frames
 
 

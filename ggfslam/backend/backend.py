@@ -37,7 +37,7 @@ class BackendStats:
     loops: list[dict] = field(default_factory=list)
     # plain defaults (class attributes), so trackers pickled before these counters existed still resume
     ba_failed: int = 0  # bundle adjustments whose system was indeterminate (the map kept its estimate)
-    ba_failure: str = ""  # the first such local BA, logged once
+    ba_failure: str = ""  # the first such BA, logged once
     global_ba_runs: int = 0  # global BAs (after loop closures)
     global_ba_seconds: float = 0.0  # their total time
 
@@ -133,13 +133,7 @@ class Backend:
             associate_planes(self.map, kf_id, self.bcfg)
         stats: BAStats | None = local_bundle_adjustment(self.map, kf_id, self.camera, self.tcfg, self.bcfg,
                                                            self.gcgr)
-        if stats is not None and stats.failed:
-            self.stats.ba_failed += 1
-            if not self.stats.ba_failure:
-                self.stats.ba_failure = f"keyframe {kf_id}: {stats.failed}"
-                log.warning("local BA skipped at %s (counted as backend.ba_failed; further ones are not logged)",
-                            self.stats.ba_failure)
-        elif stats is not None:
+        if stats is not None and not self._failed(stats, "local BA", kf_id):
             self.stats.ba_runs += 1
             self.stats.ba_seconds.append(stats.seconds)
             self.stats.outliers_removed += stats.outliers
@@ -171,11 +165,7 @@ class Backend:
         from ggfslam.backend.local_ba import global_bundle_adjustment
 
         stats = global_bundle_adjustment(self.map, self.camera, self.tcfg, self.bcfg)
-        if stats is None:
-            return
-        if stats.failed:
-            self.stats.ba_failed += 1
-            log.warning("global BA skipped: %s", stats.failed)
+        if stats is None or self._failed(stats, "global BA", max(self.map.keyframes)):
             return
         self.stats.global_ba_runs += 1
         self.stats.global_ba_seconds += stats.seconds
@@ -183,6 +173,18 @@ class Backend:
         self.loop_detector.update_poses(self.map.poses())
         log.info("global BA: %d keyframes, %d landmarks, error %.0f -> %.0f (%.1f s)", stats.keyframes,
                  stats.landmarks, stats.error_before, stats.error_after, stats.seconds)
+
+    def _failed(self, stats: BAStats, what: str, kf_id: int) -> bool:
+        """Whether the bundle adjustment ``what`` at keyframe ``kf_id`` did not run; such BAs are counted
+        (backend.ba_failed) and the first one is logged."""
+        if not stats.failed:
+            return False
+        self.stats.ba_failed += 1
+        if not self.stats.ba_failure:
+            self.stats.ba_failure = f"keyframe {kf_id}: {stats.failed}"
+            log.warning("%s skipped at %s (counted as backend.ba_failed; further ones are not logged)", what,
+                        self.stats.ba_failure)
+        return True
 
     def place_candidates(self, descriptors, top_k: int) -> list[int]:
         """Keyframes that look most like a set of ORB descriptors (for relocalization), best first."""

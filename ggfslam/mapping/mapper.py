@@ -533,11 +533,12 @@ class Mapper:
         """Children in the bake (``bake_gaussians``): those with positive opacity."""
         return len(self.bake_gaussians())
 
-    def stats(self) -> dict:
-        """Figures for metrics.json."""
+    def stats(self, baked: DecodedGaussians | None = None) -> dict:
+        """Figures for metrics.json (the Gaussian count from ``baked``, a ``bake_gaussians()`` result, if given)."""
         return {"iterations": self.iteration, "train_seconds": self.train_seconds,
                 "iterations_per_s": self.iteration / self.train_seconds if self.train_seconds else 0.0,
-                "anchors": self.map.n_anchors, "gaussians": self.n_gaussians(), "anchors_grown": self.grown,
+                "anchors": self.map.n_anchors,
+                "gaussians": self.n_gaussians() if baked is None else len(baked), "anchors_grown": self.grown,
                 "anchors_pruned": self.pruned, "anchors_merged": self.merged, "keyframes": len(self.store),
                 "train_width": self.intr.width, "train_height": self.intr.height, "last_losses": self.last_losses,
                 **({"ggf": self.ggf.stats()} if self.ggf is not None else {})}
