@@ -5,6 +5,7 @@ each run directory as ``config.yaml`` so a run can always be reproduced and re-e
 """
 from __future__ import annotations
 
+import math
 import os
 import re
 from pathlib import Path
@@ -40,6 +41,44 @@ class CameraConfig(_Section):
     """Raw depth units per metre (TUM 5000, ScanNet 1000, Replica 6553.5)."""
     distortion: list[float] = []
     """OpenCV distortion k1 k2 p1 p2 [k3]; empty for undistorted images."""
+
+
+class DepthRegistrationConfig(_Section):
+    """A depth camera that is not registered to the colour camera (raw Kinect v1 streams, 7-Scenes): its own
+    pinhole intrinsics and where it sits in the colour camera's frame. Every depth image is warped into the
+    colour camera when read (``geometry.depth.register_depth``: nearest surface wins), so tracking, the map and
+    evaluation all see depth and colour pixel for pixel. The dataset's intrinsics (or ``dataset.camera``) are then
+    the colour camera's, and the poses are the colour camera's."""
+
+    fx: float
+    """Depth camera focal length in x (pixels, at the stored depth resolution)."""
+    fy: float
+    """Depth camera focal length in y (pixels)."""
+    cx: float
+    """Depth camera principal point x (pixels, pixel-centre convention)."""
+    cy: float
+    """Depth camera principal point y (pixels)."""
+    translation: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """The depth camera's centre in colour-camera coordinates (metres, OpenCV axes): t of T_color_depth."""
+    rotation: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)
+    """R of T_color_depth as a unit quaternion, TUM order ``qx qy qz qw``."""
+
+    @model_validator(mode="after")
+    def _check(self) -> "DepthRegistrationConfig":
+        if not (self.fx > 0 and self.fy > 0):
+            raise ValueError(f"depth_registration focal lengths must be > 0, got fx={self.fx}, fy={self.fy}")
+        if not abs(math.sqrt(sum(q * q for q in self.rotation)) - 1.0) < 1e-3:
+            raise ValueError(f"depth_registration.rotation must be a unit quaternion (qx qy qz qw), got "
+                             f"{list(self.rotation)}")
+        return self
+
+    def T_color_depth(self) -> np.ndarray:
+        """[4, 4] taking depth-camera points into the colour camera's frame."""
+        import numpy as np
+
+        from ggfslam.geometry.se3 import pose_from_tum
+
+        return pose_from_tum(np.array([*self.translation, *self.rotation], np.float64))
 
 
 class SyntheticConfig(_Section):
@@ -101,6 +140,9 @@ class DatasetConfig(_Section):
     """Largest timestamp difference (s) when associating colour, depth and ground truth."""
     camera: CameraConfig | None = None
     """Intrinsics override; None = from the dataset (camera.yaml, cam_params.json, TUM defaults, ...)."""
+    depth_registration: DepthRegistrationConfig | None = None
+    """The depth camera's intrinsics and pose in the colour camera, when depth images are not registered to the
+    colour images (see DepthRegistrationConfig); None = they are (TUM, Replica, ScanNet, RealSense aligned)."""
     synthetic: SyntheticConfig = SyntheticConfig()
     """Parameters of a generated sequence (kind: synthetic)."""
     on_bad_frame: Literal["skip", "error"] = "skip"

@@ -11,6 +11,7 @@ import numpy as np
 from ggfslam.data.imageio import read_depth, read_rgb
 from ggfslam.data.types import Camera, Frame
 from ggfslam.errors import DatasetError
+from ggfslam.geometry.depth import register_depth
 
 
 class RGBDDataset(ABC):
@@ -40,6 +41,7 @@ class RGBDDataset(ABC):
         if start < 0:
             raise DatasetError(self.root, f"start must be >= 0, got {start}")
         self._indices: np.ndarray | None = None
+        self._registration: tuple[tuple[float, float, float, float], np.ndarray] | None = None
 
     # --- for subclasses -------------------------------------------------------------------------
     @abstractmethod
@@ -63,6 +65,15 @@ class RGBDDataset(ABC):
         """Colour [H, W, 3] float32, depth [H, W] float32 metres, and the colour file name of one raw frame."""
 
     # --- public API -----------------------------------------------------------------------------
+    def set_depth_registration(self, depth_intrinsics: tuple[float, float, float, float],
+                               T_color_depth: np.ndarray) -> None:
+        """Warp every depth image into the colour camera when read: the depth camera's pinhole (fx, fy, cx, cy)
+        and T_color_depth [4, 4] (``geometry.depth.register_depth``)."""
+        if self._raw_camera().distortion:
+            raise DatasetError(self.root, "depth registration needs undistorted colour images, but the camera has "
+                                          f"distortion {list(self._raw_camera().distortion)}")
+        self._registration = (tuple(float(x) for x in depth_intrinsics), np.asarray(T_color_depth, np.float64))
+
     @property
     def indices(self) -> np.ndarray:
         """Raw indices of the selected frames [N]."""
@@ -115,6 +126,9 @@ class RGBDDataset(ABC):
         if depth.shape != rgb.shape[:2]:
             raise DatasetError(name, f"depth image is {depth.shape[1]}x{depth.shape[0]} but colour is "
                                      f"{rgb.shape[1]}x{rgb.shape[0]}")
+        if self._registration is not None:
+            depth = register_depth(depth, self._registration[0], (raw_cam.fx, raw_cam.fy, raw_cam.cx, raw_cam.cy),
+                                   self._registration[1], raw_cam.width, raw_cam.height)
         if self._resize is not None and self._resize != (raw_cam.width, raw_cam.height):
             w, h = self._resize
             rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)

@@ -94,5 +94,9 @@ def open_dataset_from_config(cfg: DatasetConfig) -> RGBDDataset:
             kind = detect_kind(root)
     # a listed image that is missing is one bad frame, skipped at its turn (dataset.on_bad_frame), not a refusal
     kwargs = {"max_time_diff": cfg.max_time_diff, "check_files": cfg.on_bad_frame == "error"} if kind == "tum" else {}
-    return open_dataset(kind, root, camera=camera_arg, start=cfg.start, stop=cfg.stop, stride=cfg.stride,
-                        resize=cfg.resize, **kwargs)
+    ds = open_dataset(kind, root, camera=camera_arg, start=cfg.start, stop=cfg.stop, stride=cfg.stride,
+                      resize=cfg.resize, **kwargs)
+    reg = cfg.depth_registration
+    if reg is not None:
+        ds.set_depth_registration((reg.fx, reg.fy, reg.cx, reg.cy), reg.T_color_depth())
+    return ds

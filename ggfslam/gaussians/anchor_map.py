@@ -257,8 +257,9 @@ class AnchorMap(nn.Module):
         c = c.float()
         if c.dim() == 2:
             c = c[idx]
-        args = (self.anchors[idx], self.features[idx], self.log_scale[idx], self.offsets[idx], self.base_color[idx],
-                c, idx)
+        # index_select, not [idx]: its backward is an index_add, where indexing's is an accumulating index_put
+        # (several ms a mapping step at 100k children)
+        args = (self.anchors[idx], *(getattr(self, n).index_select(0, idx) for n in PER_ANCHOR_PARAMS), c, idx)
         if reference:
             return self.decoder.reference(*args)
         return self.decoder(*args, surfels=surfels(idx) if surfels is not None else None)

@@ -101,3 +101,63 @@ def _normals_kernel(z, fx, fy, cx, cy, n):
             if c0 * (u - cx) / fx * z0 + c1 * (v - cy) / fy * z0 + c2 * z0 > 0:
                 c0, c1, c2 = -c0, -c1, -c2
             n[v, u, 0], n[v, u, 1], n[v, u, 2] = c0, c1, c2
+
+
+def register_depth(depth: np.ndarray, depth_intrinsics: tuple[float, float, float, float],
+                   color_intrinsics: tuple[float, float, float, float], T_color_depth: np.ndarray,
+                   width: int, height: int) -> np.ndarray:
+    """A depth map [H, W] of the depth camera (metres, 0 = invalid) seen from the colour camera: [height, width].
+
+    Each depth pixel's square is projected at its depth into the colour image and fills the colour pixels whose
+    centres it covers; where several surfaces land, the nearest wins (librealsense's align does the same). Both
+    cameras are pinhole (fx, fy, cx, cy); ``T_color_depth`` [4, 4] takes depth-camera points into the colour
+    camera's frame. Colour pixels no depth pixel reaches (the colour camera's wider margin, surfaces only it
+    sees) are 0."""
+    out = np.full((height, width), np.inf, np.float32)
+    T = np.asarray(T_color_depth, np.float64)
+    _register_kernel(np.ascontiguousarray(depth, np.float32), np.asarray(depth_intrinsics, np.float64),
+                     np.asarray(color_intrinsics, np.float64), T[:3, :3].copy(), T[:3, 3].copy(), out)
+    out[np.isinf(out)] = 0.0
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _register_kernel(depth, kd, kc, R, t, out):
+    H, W = depth.shape
+    h, w = out.shape
+    for v in range(H):
+        for u in range(W):
+            z = depth[v, u]
+            if not z > 0:
+                continue
+            # the pixel's two opposite corners, each moved into the colour camera and projected
+            u_lo, v_lo, u_hi, v_hi = 1e30, 1e30, -1e30, -1e30
+            zc = 0.0
+            for du in (-0.5, 0.5):
+                for dv in (-0.5, 0.5):
+                    x, y = (u + du - kd[2]) / kd[0] * z, (v + dv - kd[3]) / kd[1] * z
+                    X = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]
+                    Y = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]
+                    Z = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
+                    if not Z > 0:
+                        zc = -1.0
+                        break
+                    pu, pv = kc[0] * X / Z + kc[2], kc[1] * Y / Z + kc[3]
+                    u_lo, u_hi = min(u_lo, pu), max(u_hi, pu)
+                    v_lo, v_hi = min(v_lo, pv), max(v_hi, pv)
+                    zc += 0.25 * Z
+                if zc < 0:
+                    break
+            if not zc > 0:
+                continue
+            # colour pixel centres inside [lo, hi) (at least the one nearest the footprint's centre)
+            a0, a1 = int(np.ceil(u_lo)), int(np.ceil(u_hi)) - 1
+            b0, b1 = int(np.ceil(v_lo)), int(np.ceil(v_hi)) - 1
+            if a1 < a0:
+                a0 = a1 = int(np.floor(0.5 * (u_lo + u_hi) + 0.5))
+            if b1 < b0:
+                b0 = b1 = int(np.floor(0.5 * (v_lo + v_hi) + 0.5))
+            for pv in range(max(b0, 0), min(b1, h - 1) + 1):
+                for pu in range(max(a0, 0), min(a1, w - 1) + 1):
+                    if zc < out[pv, pu]:
+                        out[pv, pu] = zc

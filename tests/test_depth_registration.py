@@ -1,0 +1,128 @@
+"""Depth registration (depth from a second camera warped into the colour camera): values against the analytic
+depth of known surfaces, occlusion, and the dataset path that applies it (dataset.depth_registration)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ggfslam.config import config_from_dict
+from ggfslam.data.sources import open_dataset_from_config
+from ggfslam.data.types import Camera, Frame
+from ggfslam.data.writer import write_tum_sequence
+from ggfslam.errors import ConfigError, DatasetError
+from ggfslam.geometry.depth import register_depth
+from ggfslam.geometry.se3 import pose_from_tum
+
+KD = (585.0, 585.0, 320.0, 240.0)  # the depth camera (7-Scenes' nominal Kinect v1 intrinsics)
+KC = (528.0, 528.0, 320.8, 238.4)  # the colour camera beside it
+W, H = 640, 480
+
+
+def _rays(k, w, h):
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    return np.stack([(u - k[2]) / k[0], (v - k[3]) / k[1], np.ones_like(u)], axis=-1)  # [h, w, 3]
+
+
+def _plane_depth(k, n, d, w=W, h=H):
+    """Depth [h, w] of the plane n . X = d seen by a pinhole camera k at the origin."""
+    return d / (_rays(k, w, h) @ n)
+
+
+def _T(t, q=(0.0, 0.0, 0.0, 1.0)):
+    return pose_from_tum(np.array([*t, *q], np.float64))
+
+
+def test_identity_registration_returns_the_depth_unchanged():
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(0.5, 4.0, (H, W)).astype(np.float32)
+    depth[rng.random((H, W)) < 0.1] = 0
+    np.testing.assert_array_equal(register_depth(depth, KD, KD, np.eye(4), W, H), depth)
+
+
+@pytest.mark.parametrize("t, q", [((-0.025, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)),
+                                  ((0.03, -0.01, 0.005), (0.01, -0.02, 0.005, 0.99972))])
+def test_tilted_plane_matches_its_analytic_depth_in_the_colour_camera(t, q):
+    q = tuple(np.array(q) / np.linalg.norm(q))
+    n_d = np.array([0.3, -0.2, 1.0])
+    n_d /= np.linalg.norm(n_d)
+    d_d = 2.0
+    depth = _plane_depth(KD, n_d, d_d).astype(np.float32)
+    T = _T(t, q)  # depth camera -> colour camera
+    out = register_depth(depth, KD, KC, T, W, H)
+    # the same plane in the colour camera: n_c = R n_d, d_c = d_d + n_c . t
+    n_c = T[:3, :3] @ n_d
+    expected = _plane_depth(KC, n_c, d_d + n_c @ T[:3, 3])
+    covered = out > 0
+    assert covered.mean() > 0.75  # the colour camera sees wider than the depth camera: a margin stays empty
+    # corners take the centre's depth, so the footprint's depth is off by the slope over half a pixel at most
+    np.testing.assert_allclose(out[covered], expected[covered], atol=2e-3)
+    # no holes inside the covered region (each colour pixel centre is inside some depth pixel's footprint)
+    rows = np.nonzero(covered.any(axis=1))[0]
+    for r in rows[5:-5:40]:
+        cols = np.nonzero(covered[r])[0]
+        assert covered[r, cols[0]:cols[-1] + 1].all()
+
+
+def test_upsampling_registration_leaves_no_holes():
+    depth = np.full((H // 2, W // 2), 1.5, np.float32)  # a coarser depth camera than the colour one
+    kd = (KD[0] / 2, KD[1] / 2, (KD[2] + 0.5) / 2 - 0.5, (KD[3] + 0.5) / 2 - 0.5)
+    out = register_depth(depth, kd, KC, _T((-0.02, 0.0, 0.0)), W, H)
+    inner = out[40:-40, 50:-50]  # inside the depth camera's narrower view
+    assert (inner == pytest.approx(1.5, abs=1e-6)) and inner.min() > 0
+
+
+def test_nearest_surface_wins_and_the_baseline_opens_a_shadow():
+    # a far wall at 3 m with a near box at 1 m in the middle of the depth image
+    depth = np.full((H, W), 3.0, np.float32)
+    depth[200:280, 280:360] = 1.0
+    T = _T((-0.05, 0.0, 0.0))  # a wide baseline for a clear shadow
+    out = register_depth(depth, KD, KD, T, W, H)
+    # the box's centre pixel (320, 240) at 1 m moves by f * tx / z = -29.25 px; the wall by -9.75 px
+    assert out[240, 320 - 29] == pytest.approx(1.0)
+    assert out[240, 240] == pytest.approx(3.0) and out[240, 360] == pytest.approx(3.0)  # the wall on either side
+    # pixels of the wall the depth camera could not see behind the box (box's right edge moves 19.5 px further
+    # left than the wall behind it): 0, not interpolated
+    row = out[240]
+    right_edge = 360 - 0.5 - 29.25  # box edge in the colour image
+    wall_edge = 360 - 0.5 - 9.75  # where the wall behind that edge lands
+    gap = row[int(np.ceil(right_edge)) + 1:int(np.floor(wall_edge))]
+    assert len(gap) >= 15 and (gap == 0).all()
+
+
+def _written_sequence(tmp_path, camera, n=2):
+    depth = _plane_depth(KD, np.array([0.0, 0.0, 1.0]), 2.0).astype(np.float32)
+    depth[100:150, 100:150] = 1.2
+    rgb = np.full((H, W, 3), 0.5, np.float32)
+    frames = [Frame(i, 1.0 + i / 30, rgb, depth, np.eye(4)) for i in range(n)]
+    return write_tum_sequence(tmp_path / "seq", frames, camera, depth_scale=1000.0), depth
+
+
+def test_dataset_applies_the_configured_registration(tmp_path):
+    root, depth = _written_sequence(tmp_path, Camera(*KC, W, H, 1000.0))
+    cfg = config_from_dict({"dataset": {"kind": "tum", "path": str(root), "depth_registration": {
+        "fx": KD[0], "fy": KD[1], "cx": KD[2], "cy": KD[3], "translation": [-0.025, 0.0, 0.0]}}}).dataset
+    ds = open_dataset_from_config(cfg)
+    assert ds.camera.fx == KC[0]  # the dataset's intrinsics are the colour camera's
+    expected = register_depth(np.round(depth * 1000) / 1000, KD, KC, _T((-0.025, 0.0, 0.0)), W, H)
+    np.testing.assert_allclose(ds[1].depth, expected, atol=1e-6)
+    # resized frames are registered at the stored size first, then resized like any depth
+    cfg.resize = (320, 240)
+    small = open_dataset_from_config(cfg)[0].depth
+    assert small.shape == (240, 320) and small[120, 160] == pytest.approx(2.0, abs=1e-3)
+
+
+def test_registration_config_errors_name_the_field(tmp_path):
+    base = {"kind": "tum", "path": str(tmp_path)}
+    with pytest.raises(ConfigError, match="unit quaternion"):
+        config_from_dict({"dataset": {**base, "depth_registration": {"fx": 1, "fy": 1, "cx": 0, "cy": 0,
+                                                                     "rotation": [0, 0, 0, 2]}}})
+    with pytest.raises(ConfigError, match="focal lengths must be > 0"):
+        config_from_dict({"dataset": {**base, "depth_registration": {"fx": 0, "fy": 1, "cx": 0, "cy": 0}}})
+    with pytest.raises(ConfigError, match="depth_registration"):
+        config_from_dict({"dataset": {**base, "depth_registration": {"fx": 1, "fy": 1, "cx": 0, "cy": 0,
+                                                                     "baseline": 0.02}}})
+    root, _ = _written_sequence(tmp_path, Camera(*KC, W, H, 1000.0, (0.1, 0.0, 0.0, 0.0)), n=1)
+    cfg = config_from_dict({"dataset": {"kind": "tum", "path": str(root), "depth_registration": {
+        "fx": KD[0], "fy": KD[1], "cx": KD[2], "cy": KD[3]}}}).dataset
+    with pytest.raises(DatasetError, match="undistorted"):
+        open_dataset_from_config(cfg)
