@@ -126,3 +126,34 @@ def test_registration_config_errors_name_the_field(tmp_path):
         "fx": KD[0], "fy": KD[1], "cx": KD[2], "cy": KD[3]}}}).dataset
     with pytest.raises(DatasetError, match="undistorted"):
         open_dataset_from_config(cfg)
+
+
+def _edge_chamfer(rgb: np.ndarray, depth: np.ndarray) -> float:
+    """Median distance (px, capped at 10) from each depth discontinuity (near side) to the nearest colour edge."""
+    import cv2
+
+    gray = cv2.cvtColor((rgb * 255).astype(np.uint8), cv2.COLOR_RGB2GRAY)
+    edges = cv2.Canny(cv2.GaussianBlur(gray, (5, 5), 1.5), 40, 100) > 0
+    dist = cv2.distanceTransform((~edges).astype(np.uint8), cv2.DIST_L2, 5)
+    near = np.zeros(depth.shape, bool)
+    for first, second in ((np.s_[:-1], np.s_[1:]), (np.s_[:, :-1], np.s_[:, 1:])):  # vertical, horizontal pairs
+        a, b = depth[first], depth[second]
+        jump = (a > 0) & (b > 0) & (np.abs(a - b) > np.maximum(0.05 * np.minimum(a, b), 0.03))
+        near[first] |= jump & (a < b)
+        near[second] |= jump & (b < a)
+    return float(np.median(np.minimum(dist[near], 10.0)))
+
+
+def test_7scenes_registered_config_brings_depth_edges_onto_colour_edges(data_root, monkeypatch):
+    """The shipped 7-Scenes registration on real Kinect frames: depth discontinuities land on colour edges."""
+    from pathlib import Path
+
+    from ggfslam.config import load_config
+
+    monkeypatch.setenv("GGFSLAM_DATA", str(data_root))
+    configs = Path(__file__).resolve().parents[1] / "configs" / "7scenes"
+    raw = open_dataset_from_config(load_config(configs / "redkitchen_500.yaml").dataset)
+    reg = open_dataset_from_config(load_config(configs / "redkitchen_500_registered.yaml").dataset)
+    before = [_edge_chamfer(raw[i].rgb, raw[i].depth) for i in (0, 150, 300, 450)]
+    after = [_edge_chamfer(reg[i].rgb, reg[i].depth) for i in (0, 150, 300, 450)]
+    assert np.median(after) < 0.6 * np.median(before), (before, after)
