@@ -1,4 +1,4 @@
-"""Command line: ``ggfslam run | demo | eval | render | synth | bench | config-help``."""
+"""Command line: ``ggfslam run | demo | eval | render | synth | bench | calibrate-depth | config-help``."""
 from __future__ import annotations
 
 import functools
@@ -194,6 +194,39 @@ def bench(
     # piped into a log, rich would squeeze the table into 80 columns and cut the sequence names
     (console if console.is_terminal else Console(width=150)).print(format_table(rows))
     console.print(f"runs and ablation.json in {out}")
+
+
+@app.command("calibrate-depth")
+@user_errors
+def calibrate_depth(
+    config: Path = typer.Argument(..., help="Config of an unregistered sequence (its intrinsics: the depth camera's)."),
+    frames: int = typer.Option(20, help="Frames to fit on, spread over the sequence."),
+    baseline: float = typer.Option(-0.025, help="Starting x offset (m) of the depth camera in the colour camera."),
+    set_: list[str] = typer.Option([], "--set", help="Override a config value (repeatable)."),
+):
+    """Fit the depth camera's registration to the colour camera from the sequence (depth edges onto colour edges)
+    and print the dataset.camera and dataset.depth_registration sections to paste into the config."""
+    import yaml
+
+    from ggfslam.config import load_config
+    from ggfslam.data.depth_calibration import fit_depth_registration
+    from ggfslam.data.sources import open_dataset_from_config
+    from ggfslam.errors import ConfigError
+
+    cfg = load_config(config, set_)
+    if cfg.dataset.depth_registration is not None:
+        raise ConfigError(f"{config}: dataset.depth_registration is already set; fit on the unregistered sequence")
+    ds = open_dataset_from_config(cfg.dataset)
+    cam = ds.camera
+    try:
+        fit = fit_depth_registration(ds, n_frames=frames, baseline_guess=baseline)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    # plain text, never re-wrapped: it is pasted into a config
+    typer.echo(f"# depth edges to colour edges: {fit.distance_before_px:.2f} px as read, "
+               f"{fit.distance_after_px:.2f} px registered ({fit.edge_points} edge pixels in {fit.frames} frames)")
+    section = fit.as_config((cam.fx, cam.fy, cam.cx, cam.cy), cam.width, cam.height, cam.depth_scale)
+    typer.echo(yaml.safe_dump({"dataset": section}, sort_keys=False, default_flow_style=None, width=1000))
 
 
 @app.command("config-help")

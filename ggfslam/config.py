@@ -11,6 +11,7 @@ import re
 from pathlib import Path
 from typing import Any, Literal
 
+import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, ValidationError, model_validator
 
@@ -74,8 +75,6 @@ class DepthRegistrationConfig(_Section):
 
     def T_color_depth(self) -> np.ndarray:
         """[4, 4] taking depth-camera points into the colour camera's frame."""
-        import numpy as np
-
         from ggfslam.geometry.se3 import pose_from_tum
 
         return pose_from_tum(np.array([*self.translation, *self.rotation], np.float64))

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from ggfslam.config import config_from_dict
+from ggfslam.data.depth_calibration import colour_edge_distance, near_discontinuities
 from ggfslam.data.sources import open_dataset_from_config
 from ggfslam.data.types import Camera, Frame
 from ggfslam.data.writer import write_tum_sequence
@@ -130,18 +131,7 @@ def test_registration_config_errors_name_the_field(tmp_path):
 
 def _edge_chamfer(rgb: np.ndarray, depth: np.ndarray) -> float:
     """Median distance (px, capped at 10) from each depth discontinuity (near side) to the nearest colour edge."""
-    import cv2
-
-    gray = cv2.cvtColor((rgb * 255).astype(np.uint8), cv2.COLOR_RGB2GRAY)
-    edges = cv2.Canny(cv2.GaussianBlur(gray, (5, 5), 1.5), 40, 100) > 0
-    dist = cv2.distanceTransform((~edges).astype(np.uint8), cv2.DIST_L2, 5)
-    near = np.zeros(depth.shape, bool)
-    for first, second in ((np.s_[:-1], np.s_[1:]), (np.s_[:, :-1], np.s_[:, 1:])):  # vertical, horizontal pairs
-        a, b = depth[first], depth[second]
-        jump = (a > 0) & (b > 0) & (np.abs(a - b) > np.maximum(0.05 * np.minimum(a, b), 0.03))
-        near[first] |= jump & (a < b)
-        near[second] |= jump & (b < a)
-    return float(np.median(np.minimum(dist[near], 10.0)))
+    return float(np.median(np.minimum(colour_edge_distance(rgb)[near_discontinuities(depth)], 10.0)))
 
 
 def test_7scenes_registered_config_brings_depth_edges_onto_colour_edges(data_root, monkeypatch):
@@ -157,3 +147,70 @@ def test_7scenes_registered_config_brings_depth_edges_onto_colour_edges(data_roo
     before = [_edge_chamfer(raw[i].rgb, raw[i].depth) for i in (0, 150, 300, 450)]
     after = [_edge_chamfer(reg[i].rgb, reg[i].depth) for i in (0, 150, 300, 450)]
     assert np.median(after) < 0.6 * np.median(before), (before, after)
+
+
+def _raw_sequence(tmp_path):
+    """The procedural room's depth moved into a made-up depth camera (focal 1/0.9 of the colour camera's, principal
+    point off by (3, -2) px, 2.5 cm to its side), written as an unregistered TUM folder whose camera.yaml is the
+    depth camera's: (folder, frames, colour camera, depth intrinsics)."""
+    from ggfslam.geometry.se3 import invert
+
+    syn = open_dataset_from_config(config_from_dict({"dataset": {"kind": "synthetic", "synthetic": {
+        "n_frames": 60, "seed": 3}}}).dataset)
+    c = syn.camera
+    kc = (c.fx, c.fy, c.cx, c.cy)
+    kd = (c.fx / 0.9, c.fy / 0.9, c.cx + 3.0, c.cy - 2.0)
+    frames = []
+    for i in range(0, 60, 6):
+        f = syn[i]
+        raw = register_depth(f.depth, kc, kd, invert(_T((-0.025, 0.0, 0.0))), c.width, c.height)  # depth camera's
+        frames.append(Frame(len(frames), f.timestamp, f.rgb, raw, f.T_wc))
+    root = write_tum_sequence(tmp_path / "raw", frames, Camera(*kd, c.width, c.height, 5000.0), 5000.0)
+    return root, frames, c, kd
+
+
+def test_fit_recovers_a_known_registration(tmp_path):
+    """The fit finds the colour camera and puts depth edges back onto colour edges as well as the true
+    registration does."""
+    from ggfslam.data.depth_calibration import edge_distance, edge_frame, fit_depth_registration
+    from ggfslam.data.registry import open_dataset
+
+    root, frames, c, kd = _raw_sequence(tmp_path)
+    fit = fit_depth_registration(open_dataset("tum", root), n_frames=10)
+    truth = edge_distance([edge_frame(f.rgb, f.depth, kd) for f in frames], c.fx, c.fy, c.cx, c.cy,
+                          (-0.025, 0.0, 0.0))
+    assert fit.fx == pytest.approx(c.fx, rel=0.01)
+    assert fit.cx == pytest.approx(c.cx, abs=1.5) and fit.cy == pytest.approx(c.cy, abs=1.5)
+    assert fit.translation[0] == pytest.approx(-0.025, abs=0.003) and abs(fit.translation[1]) < 0.003
+    assert fit.distance_after_px <= truth + 0.1 < fit.distance_before_px - 1.0, (fit, truth)
+
+
+def test_calibrate_depth_prints_a_config_that_registers_the_sequence(tmp_path):
+    import yaml
+    from typer.testing import CliRunner
+
+    from ggfslam.cli import app
+
+    root, frames, c, kd = _raw_sequence(tmp_path)
+    cfg_path = tmp_path / "raw.yaml"
+    cfg_path.write_text(f"dataset: {{kind: tum, path: {root}}}\n")
+    res = CliRunner().invoke(app, ["calibrate-depth", str(cfg_path), "--frames", "10"])
+    assert res.exit_code == 0, res.output
+    pasted = yaml.safe_load(res.output)["dataset"]  # the comment line is YAML too
+    assert pasted["camera"]["fx"] == pytest.approx(c.fx, rel=0.01) and pasted["camera"]["depth_scale"] == 5000.0
+    ds = open_dataset_from_config(config_from_dict({"dataset": {"kind": "tum", "path": str(root), **pasted}}).dataset)
+    assert ds.camera.fx == pasted["camera"]["fx"]
+    # the registered depth agrees with the colour camera's own depth where both exist (edges aside)
+    reg, true = ds[3].depth, _synthetic_depth(3)
+    both = (reg > 0) & (true > 0)
+    assert both.mean() > 0.7 and np.median(np.abs(reg[both] - true[both])) < 0.01
+    # a registered config is refused: the fit needs the raw depth
+    cfg_path.write_text(yaml.safe_dump({"dataset": {"kind": "tum", "path": str(root), **pasted}}))
+    res = CliRunner().invoke(app, ["calibrate-depth", str(cfg_path)])
+    assert res.exit_code == 2 and "already set" in res.output
+
+
+def _synthetic_depth(k: int) -> np.ndarray:
+    syn = open_dataset_from_config(config_from_dict({"dataset": {"kind": "synthetic", "synthetic": {
+        "n_frames": 60, "seed": 3}}}).dataset)
+    return syn[6 * k].depth
