@@ -23,6 +23,7 @@ from ggfslam.data.sources import open_dataset_from_config
 from ggfslam.data.trajectory_io import read_tum_trajectory, write_tum_trajectory
 from ggfslam.errors import DatasetError, GGFSlamError, RunDirError
 from ggfslam.eval.perf import StageTimer, current_rss_mb, peak_rss_mb
+from ggfslam.render.cpu import release_free_memory
 from ggfslam.eval.trajectory import trajectory_metrics
 from ggfslam.rundir import (
     CONFIG_FILE,
@@ -334,6 +335,7 @@ def _track_sequence(config: Config, dataset: RGBDDataset, run_dir: Path, st: _Ru
                 if every and len(st.mapper.store) % every == 0:
                     st.checkpoint(run_dir, i + 1)
             if (i + 1) % RSS_EVERY == 0 or i + 1 == st.n:
+                release_free_memory()  # the sample shows what the run holds, not glibc's cache of freed pages
                 st.rss.append((i + 1, round(current_rss_mb(), 1)))
             bar.update(task, advance=1, fps=st.timer.fps("tracking"))
     stop.tracking = False

@@ -151,3 +151,21 @@ def test_stage_timer_and_memory():
     assert peak_rss_mb() > 10
     table = metrics_table({"trajectory": {"ate_rmse_cm": 1.234}, "tracking": {"frames": 3}})
     assert table.row_count == 2
+
+
+def test_release_free_memory_returns_freed_heap_to_the_os():
+    """With the renderer's allocator thresholds freed buffers stay in the process; the run's memory samples
+    release them first, so they show what the run holds."""
+    from ggfslam.eval.perf import current_rss_mb
+    from ggfslam.render.cpu import release_free_memory, tune_allocator
+
+    if not tune_allocator() and not release_free_memory():
+        pytest.skip("not glibc, or its allocator settings are left to the environment")
+    release_free_memory()
+    base = current_rss_mb()
+    block = np.ones(150 * 2**20 // 8)  # 150 MiB: under the raised mmap threshold, so it comes from the heap
+    assert current_rss_mb() > base + 100
+    del block
+    held = current_rss_mb()
+    assert release_free_memory()
+    assert current_rss_mb() < held - 100
