@@ -23,8 +23,8 @@ from ggfslam.data.sources import open_dataset_from_config
 from ggfslam.data.trajectory_io import read_tum_trajectory, write_tum_trajectory
 from ggfslam.errors import DatasetError, GGFSlamError, RunDirError
 from ggfslam.eval.perf import StageTimer, current_rss_mb, peak_rss_mb
-from ggfslam.render.cpu import release_free_memory
 from ggfslam.eval.trajectory import trajectory_metrics
+from ggfslam.render.cpu import release_free_memory
 from ggfslam.rundir import (
     CONFIG_FILE,
     GAUSSIANS_FILE,

@@ -172,7 +172,11 @@ def _raw_sequence(tmp_path):
 def test_fit_recovers_a_known_registration(tmp_path):
     """The fit finds the colour camera and puts depth edges back onto colour edges as well as the true
     registration does."""
-    from ggfslam.data.depth_calibration import edge_distance, edge_frame, fit_depth_registration
+    from ggfslam.data.depth_calibration import (
+        edge_distance,
+        edge_frame,
+        fit_depth_registration,
+    )
     from ggfslam.data.registry import open_dataset
 
     root, frames, c, kd = _raw_sequence(tmp_path)
