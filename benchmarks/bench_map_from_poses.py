@@ -30,12 +30,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_tracking import finish_report, in_fresh_process, log, start_report  # noqa: E402
 
 
-def keyframe_frames(run_dir: Path) -> list[int]:
-    """Sequence indices of a run's keyframes, in order (tracking.txt's keyframe column)."""
-    rows = [ln.split() for ln in (run_dir / "tracking.txt").read_text().splitlines() if ln and not ln.startswith("#")]
-    return [int(r[0]) for r in rows if len(r) > 3 and r[3] == "1"]
-
-
 def map_from_poses(run_dir: str, source: str, overrides: list[str]) -> dict:
     """Train a map on the run's keyframes from ``source`` poses ('run' or 'gt') and score it."""
     from ggfslam.config import load_config
@@ -43,7 +37,8 @@ def map_from_poses(run_dir: str, source: str, overrides: list[str]) -> dict:
     from ggfslam.data.trajectory_io import read_tum_trajectory
     from ggfslam.mapping.mapper import Mapper
     from ggfslam.render.types import RenderSettings
-    from ggfslam.slam import rendering_metrics
+    from ggfslam.render_run import keyframe_frames
+    from ggfslam.slam import frames_of_stamps, rendering_metrics
 
     run = Path(run_dir)
     cfg = load_config(run / "config.yaml", overrides)
@@ -54,8 +49,7 @@ def map_from_poses(run_dir: str, source: str, overrides: list[str]) -> dict:
         frames, poses = np.arange(len(ds)), ds.gt_poses  # [N], [N, 4, 4]
     else:
         stamps, est = read_tum_trajectory(run / "trajectory.txt")
-        index = {round(float(t), 6): i for i, t in enumerate(ds.timestamps)}
-        frames = np.array([index[round(float(t), 6)] for t in stamps])
+        frames = frames_of_stamps(np.asarray(ds.timestamps), stamps, run / "trajectory.txt")
         poses = np.full((len(ds), 4, 4), np.nan)
         poses[frames] = est
     kfs = keyframe_frames(run)

@@ -218,10 +218,7 @@ def calibrate_depth(
         raise ConfigError(f"{config}: dataset.depth_registration is already set; fit on the unregistered sequence")
     ds = open_dataset_from_config(cfg.dataset)
     cam = ds.camera
-    try:
-        fit = fit_depth_registration(ds, n_frames=frames, baseline_guess=baseline)
-    except ValueError as e:
-        raise ConfigError(str(e)) from None
+    fit = fit_depth_registration(ds, n_frames=frames, baseline_guess=baseline)
     # plain text, never re-wrapped: it is pasted into a config
     typer.echo(f"# depth edges to colour edges: {fit.distance_before_px:.2f} px as read, "
                f"{fit.distance_after_px:.2f} px registered ({fit.edge_points} edge pixels in {fit.frames} frames)")

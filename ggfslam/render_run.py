@@ -27,7 +27,7 @@ def _frame_selection(spec: str, n: int, kf_frames: list[int]) -> np.ndarray:
     return np.arange(n)[slice(*vals)]
 
 
-def _keyframe_frames(run_dir: Path) -> list[int]:
+def keyframe_frames(run_dir: Path) -> list[int]:
     """Frame indices of a run's keyframes, from tracking.txt (index timestamp state keyframe ...)."""
     from ggfslam.rundir import TRACKING_LOG_FILE
 
@@ -63,7 +63,7 @@ def render_run(run_dir: str | Path, frames: str = "keyframes", path: str | Path 
         if not (run_dir / GAUSSIANS_FILE).is_file():
             raise RunDirError(f"{run_dir}: {GAUSSIANS_FILE} missing (the run did not finish, or ran without mapping)")
         baked = ExplicitGaussians.from_ply(run_dir / GAUSSIANS_FILE)
-        kf_frames = {i: f for i, f in enumerate(_keyframe_frames(run_dir))} if path is None else {}
+        kf_frames = {i: f for i, f in enumerate(keyframe_frames(run_dir))} if path is None else {}
 
         def render(T, _exposure_kf):
             return baked.render(T, intr)

@@ -528,7 +528,7 @@ def load_mapper(run_dir: str | Path):
     return config, mapper, ckpt
 
 
-def _frames_of_stamps(frame_stamps: np.ndarray, stamps: np.ndarray, path: Path) -> np.ndarray:
+def frames_of_stamps(frame_stamps: np.ndarray, stamps: np.ndarray, path: Path) -> np.ndarray:
     """Frame index [M] of each trajectory timestamp [M] (TUM files keep 6 decimals)."""
     from ggfslam.data.tum import associate
 
@@ -561,7 +561,7 @@ def evaluate(run_dir: str | Path) -> dict:
     if config.mapping.enabled:
         _, mapper, _ = load_mapper(run_dir)
         dataset = dataset or open_dataset_from_config(config.dataset)
-        frames = _frames_of_stamps(np.asarray(dataset.timestamps), est_stamps, traj)
+        frames = frames_of_stamps(np.asarray(dataset.timestamps), est_stamps, traj)
         metrics["rendering"] = rendering_metrics(config, mapper, dataset, frames, est_poses)
     write_json(run_dir / METRICS_FILE, metrics)
     return metrics

@@ -17,6 +17,8 @@ import numpy as np
 from scipy.optimize import minimize
 
 from ggfslam.data.base import RGBDDataset
+from ggfslam.errors import DatasetError
+from ggfslam.geometry.depth import backproject
 
 CAP_PX = 8.0  # distances are truncated here: edges with no counterpart do not pull the fit
 
@@ -74,10 +76,7 @@ def near_discontinuities(depth: np.ndarray, rel: float = 0.05, min_jump: float =
 
 def edge_frame(rgb: np.ndarray, depth: np.ndarray, depth_intrinsics: tuple[float, float, float, float]) -> EdgeFrame:
     """The colour edge distances and the back-projected depth discontinuities of one frame."""
-    fx, fy, cx, cy = depth_intrinsics
-    v, u = np.nonzero(near_discontinuities(depth))
-    z = depth[v, u].astype(np.float64)
-    pts = np.stack([(u - cx) / fx * z, (v - cy) / fy * z, z], axis=1)  # [N, 3]
+    pts = backproject(depth, *depth_intrinsics)[near_discontinuities(depth)]  # [N, 3]
     return EdgeFrame(colour_edge_distance(rgb), pts)
 
 
@@ -113,8 +112,8 @@ def fit_depth_registration(dataset: RGBDDataset, depth_intrinsics: tuple[float, 
         frames.append(edge_frame(f.rgb, f.depth, kd))
     n_pts = sum(len(f.points) for f in frames)
     if n_pts < 500:
-        raise ValueError(f"{dataset.root}: only {n_pts} depth discontinuities in {len(frames)} frames; the fit needs "
-                         "scenes with depth edges (objects in front of walls)")
+        raise DatasetError(dataset.root, f"only {n_pts} depth discontinuities in {len(frames)} frames; the fit needs "
+                                         "scenes with depth edges (objects in front of walls)")
     before = edge_distance(frames, kd[0], kd[1], kd[2], kd[3], (0.0, 0.0, 0.0))
 
     def cost(x):
