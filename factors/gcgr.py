@@ -151,6 +151,17 @@ def ray_plane_jacobians(view: MapView, sensor: SensorView, pix: np.ndarray, vali
     return Jd, Jn
 
 
+def eliminate_offset(rows: np.ndarray, J: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows [N] and Jacobian [N, 6] with a free constant offset of the valid rows eliminated: both minus their
+    means over the valid rows (the Schur complement of an unconstrained offset under equal row weights); invalid
+    rows stay 0."""
+    if not valid.any():
+        return rows, J
+    rows = np.where(valid, rows - rows[valid].mean(), 0.0)
+    J = np.where(valid[:, None], J - J[valid].mean(axis=0), 0.0)
+    return rows, J
+
+
 def moved_past(xi: np.ndarray, cfg: GCGRConfig) -> bool:
     """Whether a tangent step [6] leaves the region where the first-order model is trusted."""
     return bool(np.degrees(np.linalg.norm(xi[:3])) > cfg.relinearize_rotation
@@ -188,6 +199,8 @@ class GCGRModel:
         else:
             Jd, Jn = self.central_jacobians(T_wc, self.cfg.step)
             Jd[~valid], Jn[~valid] = 0.0, 0.0
+        if self.cfg.free_depth_offset:
+            rd, Jd = eliminate_offset(rd, Jd, valid)
         self.T0 = gtsam.Pose3(np.asarray(T_wc, np.float64))
         self.view, self.valid = view, valid
         self.rows0 = {"depth": rd, "normal": rn}  # [N] each, at T0
@@ -263,5 +276,5 @@ def whitened_rows(model: GCGRModel, kind: str, pose: gtsam.Pose3) -> np.ndarray:
 
 
 __all__ = ["GCGRModel", "MapView", "SensorView", "RenderFn", "select_pixels", "residual_rows",
-           "ray_plane_jacobians", "locally_flat", "moved_past", "whitened_rows", "DEPTH_WEIGHT", "NORMAL_WEIGHT", "KINDS",
+           "ray_plane_jacobians", "locally_flat", "eliminate_offset", "moved_past", "whitened_rows", "DEPTH_WEIGHT", "NORMAL_WEIGHT", "KINDS",
            "MIN_PIXELS"]

@@ -363,9 +363,9 @@ def _finish_sequence(config: Config, st: _RunState) -> None:
         st.tracker.finish()  # the backend's queued keyframes: their corrections belong in the trajectory
         if st.worker is not None:
             st.worker.finish()
-    if st.mapper is not None and config.mapping.final_iterations:
+    if st.mapper is not None:
         with st.timer("final_refinement"):
-            st.mapper.sync_poses()
+            st.mapper.sync_poses()  # the final global BA may have moved keyframes
             st.mapper.train(config.mapping.final_iterations)
     st.wall += time.perf_counter() - t0
 

@@ -40,6 +40,8 @@ class BackendStats:
     ba_failure: str = ""  # the first such BA, logged once
     global_ba_runs: int = 0  # global BAs (after loop closures)
     global_ba_seconds: float = 0.0  # their total time
+    final_ba_done: bool = False  # the final global BA ran (finish() may be called again)
+    final_ba_seconds: float = 0.0
 
 
 class Backend:
@@ -160,19 +162,25 @@ class Backend:
         if self.bcfg.global_ba and self.bcfg.fusion:
             self._global_ba()
 
-    def _global_ba(self) -> None:
-        """Every keyframe and landmark bundle-adjusted together (after a loop closure, ``backend.global_ba``)."""
+    def _global_ba(self, final: bool = False) -> None:
+        """Every keyframe and landmark bundle-adjusted together: after a loop closure (``backend.global_ba``), or
+        with ``final`` at the end (``backend.final_global_ba``, with the GCGR factors when GCGR is on)."""
         from ggfslam.backend.local_ba import global_bundle_adjustment
 
-        stats = global_bundle_adjustment(self.map, self.camera, self.tcfg, self.bcfg)
-        if stats is None or self._failed(stats, "global BA", max(self.map.keyframes)):
+        what = "final global BA" if final else "global BA"
+        stats = global_bundle_adjustment(self.map, self.camera, self.tcfg, self.bcfg, self.gcgr if final else None)
+        if stats is None or self._failed(stats, what, max(self.map.keyframes)):
             return
-        self.stats.global_ba_runs += 1
-        self.stats.global_ba_seconds += stats.seconds
+        if final:
+            self.stats.final_ba_seconds = stats.seconds
+        else:
+            self.stats.global_ba_runs += 1
+            self.stats.global_ba_seconds += stats.seconds
         self.stats.outliers_removed += stats.outliers
-        self.loop_detector.update_poses(self.map.poses())
-        log.info("global BA: %d keyframes, %d landmarks, error %.0f -> %.0f (%.1f s)", stats.keyframes,
-                 stats.landmarks, stats.error_before, stats.error_after, stats.seconds)
+        if self.loop_detector is not None:
+            self.loop_detector.update_poses(self.map.poses())
+        log.info("%s: %d keyframes, %d landmarks, %d GCGR factors, error %.0f -> %.0f (%.1f s)", what, stats.keyframes,
+                 stats.landmarks, stats.gcgr_factors, stats.error_before, stats.error_after, stats.seconds)
 
     def _failed(self, stats: BAStats, what: str, kf_id: int) -> bool:
         """Whether the bundle adjustment ``what`` at keyframe ``kf_id`` did not run; such BAs are counted
@@ -210,12 +218,16 @@ class Backend:
             self.stats.landmarks_culled += int(bad.sum())
 
     def finish(self) -> None:
-        """Wait for queued keyframes to be processed and stop the worker."""
+        """Wait for queued keyframes to be processed and stop the worker; then, once, the final global BA
+        (``backend.final_global_ba``)."""
         if self._queue is not None and self._thread is not None and self._thread.is_alive():
             self._queue.put(None)
             self._thread.join()
         if self._error is not None:
             raise RuntimeError("backend worker failed") from self._error
+        if self.bcfg.final_global_ba and self.bcfg.fusion and not self.stats.final_ba_done:
+            self.stats.final_ba_done = True
+            self._global_ba(final=True)
 
     def summary(self) -> dict:
         """Backend figures for metrics.json."""
@@ -227,7 +239,7 @@ class Backend:
             "ba_ms_max": 1000 * float(np.max(s.ba_seconds)) if s.ba_seconds else 0.0,
             "landmarks_culled": s.landmarks_culled, "outliers_removed": s.outliers_removed,
             "fused_observations": s.fused_observations, "fused_landmarks": s.fused_landmarks,
-            "loops": len(s.loops), "global_ba_runs": s.global_ba_runs,
+            "loops": len(s.loops), "global_ba_runs": s.global_ba_runs, "final_ba_ms": 1000 * s.final_ba_seconds,
             "global_ba_ms_mean": 1000 * s.global_ba_seconds / max(s.global_ba_runs, 1),
             **({"gcgr": self.gcgr.summary()} if self.gcgr is not None else {}),
         }

@@ -7,7 +7,8 @@ keyframes fall back to the mapper's keyframe store) and caches one ``GCGRModel``
   keyframe, the render the step made anyway becomes the keyframe's model, at no render cost. The first
   ``harvest_every`` steps after a keyframe's first step are skipped: its newly seeded anchors only echo its own
   depth then;
-- its own renders, at most ``gcgr.renders_per_ba`` per local BA (the newest keyframe first, then keyframes whose
+- its own renders, at most ``gcgr.renders_per_ba`` per local BA (by default none where training renders serve: the
+  new keyframe's map then only echoes the depth it has just seeded; the newest keyframe first, then keyframes whose
   model is missing or older than ``gcgr.max_age`` steps). In sequential mode BA runs inside tracking, so these are
   what GCGR costs the tracking rate.
 A model re-renders by itself when the optimizer linearizes it past the relinearization threshold.
@@ -42,7 +43,7 @@ class GCGRSource:
         self.intr = mapper.intr if cfg.width == 0 else scaled_intrinsics(camera, cfg.width)
         # training renders serve only at the training resolution
         self.harvest = cfg.harvest_every > 0 and self.intr == mapper.intr and not cfg.exclude_own_anchors
-        if not self.harvest and cfg.renders_per_ba == 0 and not per_frame:
+        if not self.harvest and self.renders_per_ba == 0 and not per_frame:
             raise ConfigError("gcgr.renders_per_ba is 0 and the training renders cannot serve (gcgr.harvest_every is 0, "
                               "gcgr.width differs from mapping.train_width, or gcgr.exclude_own_anchors is true): GCGR "
                               "would have no view of the map")
@@ -59,6 +60,12 @@ class GCGRSource:
         self.frames_refined = 0
         self.refine_failed = 0  # per-frame refinements whose system was indeterminate (pose kept)
         self.refine_seconds = 0.0
+
+    @property
+    def renders_per_ba(self) -> int:
+        """Renders one local BA may make: ``gcgr.renders_per_ba``, by default none where training renders serve."""
+        r = self.cfg.renders_per_ba
+        return r if r is not None else int(not self.harvest)
 
     # --- inputs --------------------------------------------------------------------------------------
     def add_keyframe(self, kf_id: int, depth: np.ndarray) -> None:
@@ -103,7 +110,7 @@ class GCGRSource:
         with self._lock:
             return self._models.get(kf_id)
 
-    def _build(self, kf_id: int, T_wc: np.ndarray, view: MapView | None = None, iteration: int | None = None
+    def build(self, kf_id: int, T_wc: np.ndarray, view: MapView | None = None, iteration: int | None = None
                ) -> GCGRModel | None:
         """A new model of the keyframe from ``view`` (made at T_wc [4, 4] before map step ``iteration``), or from a
         render at T_wc; it replaces the cached one. None without sensor depth."""
@@ -135,7 +142,7 @@ class GCGRSource:
     @torch.no_grad()
     def offer(self, kf_id: int, T_wc: np.ndarray, iteration: int, out) -> None:
         """A training render of ``kf_id`` at T_wc [4, 4] (``RenderOutput``) becomes the keyframe's model."""
-        if self._build(kf_id, T_wc, MapView.from_render(out), iteration) is not None:
+        if self.build(kf_id, T_wc, MapView.from_render(out), iteration) is not None:
             self.models_harvested += 1
 
     def model(self, kf_id: int, T_wc: np.ndarray) -> GCGRModel | None:
@@ -146,7 +153,7 @@ class GCGRSource:
         cached = self._cached(kf_id)
         if cached is not None and self.mapper.iteration - cached[1] < self.cfg.max_age:
             return cached[0]
-        return self._build(kf_id, T_wc)
+        return self.build(kf_id, T_wc)
 
     def window_factors(self, poses: dict[int, np.ndarray]) -> list[tuple[int, str, gtsam.CustomFactor]]:
         """(keyframe, kind, factor) of the GCGR factors of the keyframes in ``poses`` (id -> T_wc [4, 4]) for one
@@ -162,11 +169,11 @@ class GCGRSource:
         age = {k: None if c is None else it - c[1] for k, c in cached.items()}
         newest = max(poses, default=None)
         order = sorted(poses, key=lambda k: (k != newest, age[k] is not None, -(age[k] or 0)))
-        budget = self.cfg.renders_per_ba
+        budget = self.renders_per_ba
         out = []
         for k in order:
             wanted = age[k] is None or age[k] >= self.cfg.max_age
-            m = self._build(k, poses[k]) if wanted and budget > 0 else None
+            m = self.build(k, poses[k]) if wanted and budget > 0 else None
             budget -= m is not None
             if m is None and cached[k] is not None:
                 m = cached[k][0]

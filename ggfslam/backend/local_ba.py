@@ -224,12 +224,13 @@ def local_bundle_adjustment(smap: SlamMap, kf_id: int, camera: Camera, tcfg: Tra
                    time.perf_counter() - t0, lg.n_plane_obs, lg.n_gcgr)
 
 
-def global_bundle_adjustment(smap: SlamMap, camera: Camera, tcfg: TrackingConfig, bcfg: BackendConfig
-                             ) -> BAStats | None:
-    """Bundle-adjust every keyframe and landmark, the oldest keyframe held (after a loop closure)."""
+def global_bundle_adjustment(smap: SlamMap, camera: Camera, tcfg: TrackingConfig, bcfg: BackendConfig,
+                             gcgr=None) -> BAStats | None:
+    """Bundle-adjust every keyframe and landmark, the oldest keyframe held (after a loop closure, at the end), with
+    the GCGR factors of ``gcgr`` (a ``GCGRSource``) when given."""
     with smap.lock:
         every = sorted(smap.keyframes)
     if len(every) < 2:
         return None
-    return local_bundle_adjustment(smap, every[-1], camera, tcfg, bcfg, window=every,
+    return local_bundle_adjustment(smap, every[-1], camera, tcfg, bcfg, gcgr=gcgr, window=every,
                                    iterations=bcfg.global_ba_iterations)
