@@ -34,11 +34,19 @@ def keyframe_frames(run_dir: Path) -> list[int]:
     f = run_dir / TRACKING_LOG_FILE
     if not f.is_file():
         raise RunDirError(f"{run_dir}: {TRACKING_LOG_FILE} missing (the run did not finish); pass --frames or --path")
-    rows = [line.split() for line in f.read_text().splitlines() if line.strip() and not line.startswith("#")]
+    index, _, keyframe = tracking_log(f)
+    return [int(i) for i, k in zip(index, keyframe) if k]
+
+
+def tracking_log(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Frame index [N] int, timestamp [N] float and keyframe flag [N] bool of each row of a run's tracking.txt
+    (index timestamp state keyframe ...)."""
+    rows = [line.split() for line in path.read_text().splitlines() if line.strip() and not line.startswith("#")]
     try:
-        return [int(r[0]) for r in rows if int(r[3]) == 1]
+        return (np.array([int(r[0]) for r in rows], np.int64), np.array([float(r[1]) for r in rows], np.float64),
+                np.array([int(r[3]) == 1 for r in rows], bool))
     except (IndexError, ValueError):
-        raise RunDirError(f"{f}: expected rows 'index timestamp state keyframe ...'") from None
+        raise RunDirError(f"{path}: expected rows 'index timestamp state keyframe ...'") from None
 
 
 def render_run(run_dir: str | Path, frames: str = "keyframes", path: str | Path | None = None,

@@ -29,6 +29,7 @@ import numpy as np
 from gtsam.symbol_shorthand import X
 
 from ggfslam.errors import RunDirError
+from ggfslam.geometry.se3 import invert, make_pose, mean_rotation, rotation_angle
 
 DEPTH_BINS = (0.0, 1.0, 2.0, 3.0, 4.0, np.inf)  # m, for the bias by depth range
 STARTS = ("estimate", "gt", "gt_calibrated")
@@ -36,18 +37,13 @@ STARTS = ("estimate", "gt", "gt_calibrated")
 
 def pose_difference(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
     """(translation cm, rotation degrees) of ``T_a^-1 T_b`` for camera-to-world poses [4, 4]."""
-    D = np.linalg.inv(T_a) @ T_b
-    cos = np.clip((np.trace(D[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
-    return 100.0 * float(np.linalg.norm(D[:3, 3])), float(np.degrees(np.arccos(cos)))
+    D = invert(T_a) @ T_b
+    return 100.0 * float(np.linalg.norm(D[:3, 3])), float(np.degrees(rotation_angle(D[:3, :3])))
 
 
 def rigid_mean(Ts: np.ndarray) -> np.ndarray:
-    """Chordal mean [4, 4] of rigid transforms [N, 4, 4] (rotation: SVD projection of the summed rotations)."""
-    U, _, Vt = np.linalg.svd(Ts[:, :3, :3].sum(axis=0))
-    M = np.eye(4)
-    M[:3, :3] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-    M[:3, 3] = Ts[:, :3, 3].mean(axis=0)
-    return M
+    """Mean [4, 4] of rigid transforms [N, 4, 4]: chordal mean rotation, mean translation."""
+    return make_pose(mean_rotation(Ts[:, :3, :3]), Ts[:, :3, 3].mean(axis=0))
 
 
 def run_keyframes(run_dir: Path, ckpt: dict) -> tuple[list[int], dict[int, np.ndarray], dict[int, np.ndarray]]:
@@ -56,7 +52,9 @@ def run_keyframes(run_dir: Path, ckpt: dict) -> tuple[list[int], dict[int, np.nd
     about a short path loose, 6 degrees on a 24-frame synthetic run, which renders as a pull); keyframes without
     ground truth are left out."""
     from ggfslam.data.trajectory_io import read_tum_trajectory
+    from ggfslam.data.tum import associate
     from ggfslam.eval.mesh_geometry import ground_truth_alignment
+    from ggfslam.render_run import tracking_log
     from ggfslam.rundir import GROUNDTRUTH_FILE, TRACKING_LOG_FILE, TRAJECTORY_FILE
 
     for name in (GROUNDTRUTH_FILE, TRAJECTORY_FILE, TRACKING_LOG_FILE):
@@ -66,22 +64,14 @@ def run_keyframes(run_dir: Path, ckpt: dict) -> tuple[list[int], dict[int, np.nd
     est_stamps, est_poses = read_tum_trajectory(run_dir / TRAJECTORY_FILE)
     gt_stamps, gt_poses = read_tum_trajectory(run_dir / GROUNDTRUTH_FILE)
     A, _ = ground_truth_alignment(est_stamps, est_poses, gt_stamps, gt_poses)
-    to_run = np.linalg.inv(A)  # ground-truth world -> the run's world
-    frame_stamp = {}
-    for line in (run_dir / TRACKING_LOG_FILE).read_text().splitlines():
-        if line.strip() and not line.startswith("#"):
-            f = line.split()
-            frame_stamp[int(f[0])] = float(f[1])
+    to_run = invert(A)  # ground-truth world -> the run's world
+    index, stamps, _ = tracking_log(run_dir / TRACKING_LOG_FILE)
+    frame_stamp = dict(zip(index.tolist(), stamps.tolist()))
     poses = {int(k): np.asarray(T, np.float64) for k, T in ckpt["keyframe_poses"].items()}
     kf_frames = {int(k): int(v) for k, v in ckpt["kf_frames"].items()}
-    gt = {}
-    for k in sorted(poses):
-        stamp = frame_stamp.get(kf_frames.get(k, -1))
-        if stamp is None:
-            continue
-        j = int(np.argmin(np.abs(gt_stamps - stamp)))
-        if abs(gt_stamps[j] - stamp) <= 0.02:
-            gt[k] = to_run @ gt_poses[j]
+    logged = [k for k in sorted(poses) if kf_frames.get(k, -1) in frame_stamp]
+    kf_idx, gt_idx = associate(np.array([frame_stamp[kf_frames[k]] for k in logged]), gt_stamps, 0.02)
+    gt = {logged[i]: to_run @ gt_poses[j] for i, j in zip(kf_idx, gt_idx)}
     ids = [k for k in sorted(poses) if k in gt]
     return ids, poses, gt
 

@@ -18,6 +18,7 @@ from ggfslam.data.types import Camera
 from ggfslam.eval.image import depth_l1_cm, normal_error_deg
 from ggfslam.eval.trajectory import ATE, associate
 from ggfslam.geometry.depth import normals_from_depth
+from ggfslam.geometry.se3 import mean_rotation
 from ggfslam.mapping.keyframe_store import resize_depth
 
 
@@ -33,8 +34,7 @@ def ground_truth_alignment(est_stamps: np.ndarray, est_poses: np.ndarray, gt_sta
     ref, est = associate(est_stamps, est_poses, gt_stamps, gt_poses, max_diff)
     gt, es = np.asarray(ref.poses_se3), np.asarray(est.poses_se3)  # [M, 4, 4] each, matched
     rel = gt @ np.linalg.inv(es)  # [M, 4, 4], each T_gt inv(T_est)
-    U, _, Vt = np.linalg.svd(rel[:, :3, :3].sum(axis=0))
-    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    R = mean_rotation(rel[:, :3, :3])
     A = np.eye(4)
     A[:3, :3] = R
     A[:3, 3] = (gt[:, :3, 3] - es[:, :3, 3] @ R.T).mean(axis=0)

@@ -27,6 +27,12 @@ def rotation_angle(R: np.ndarray) -> float:
     return float(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
 
 
+def mean_rotation(Rs: np.ndarray) -> np.ndarray:
+    """Chordal mean [3, 3] of rotations [N, 3, 3]: the rotation nearest their sum (SVD projection)."""
+    U, _, Vt = np.linalg.svd(np.asarray(Rs, np.float64).sum(axis=0))
+    return U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+
+
 def invert(T: np.ndarray) -> np.ndarray:
     """Inverse of a rigid transform [4, 4] (or a stack [N, 4, 4])."""
     T = np.asarray(T, dtype=np.float64)

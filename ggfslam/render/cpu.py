@@ -49,18 +49,16 @@ def tune_allocator() -> bool:
     if _ALLOCATOR_TUNED is not None:
         return _ALLOCATOR_TUNED
     _ALLOCATOR_TUNED = False
-    if os.environ.get("GGFSLAM_MALLOC_TUNING", "1") == "0" or not sys.platform.startswith("linux"):
+    if os.environ.get("GGFSLAM_MALLOC_TUNING", "1") == "0":
         return False
     if "MALLOC_MMAP_THRESHOLD_" in os.environ or "MALLOC_TRIM_THRESHOLD_" in os.environ:
         return False
-    try:
-        libc = ctypes.CDLL("libc.so.6")
+    libc = _glibc()
+    if libc is not None:
         m_trim_threshold, m_mmap_threshold = -1, -3
         ok = libc.mallopt(m_mmap_threshold, 256 << 20) == 1
         ok = (libc.mallopt(m_trim_threshold, 512 << 20) == 1) and ok
         _ALLOCATOR_TUNED = bool(ok)
-    except (OSError, AttributeError):  # not glibc
-        pass
     return _ALLOCATOR_TUNED
 
 
@@ -71,13 +69,22 @@ def release_free_memory() -> bool:
     largest render's high-water mark and stays there, whatever the run still holds. Called every few hundred
     frames (the run's memory samples), it keeps RSS near the live memory for the cost of one render's page
     faults (~16 ms). No-op off glibc."""
+    libc = _glibc()
+    if libc is None:
+        return False
+    libc.malloc_trim(0)
+    return True
+
+
+def _glibc():
+    """The C library when it is glibc (it has ``mallopt`` and ``malloc_trim``), else None."""
     if not sys.platform.startswith("linux"):
-        return False
+        return None
     try:
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-        return True
-    except (OSError, AttributeError):  # not glibc
-        return False
+        libc = ctypes.CDLL("libc.so.6")
+        return libc if hasattr(libc, "mallopt") and hasattr(libc, "malloc_trim") else None
+    except OSError:  # not glibc
+        return None
 
 
 def _np32(t: torch.Tensor) -> np.ndarray:
