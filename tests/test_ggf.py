@@ -16,7 +16,7 @@ from ggfslam.ggf import GeometricGaussianField, planarity_colors
 from ggfslam.ggf.amr import morph_loss, quat_z_to, shortest_axis, surfel_shape
 from ggfslam.ggf.aof import (CONSOLIDATION, EVOLUTION, SUPPRESSION, feedback_loss, feedback_targets,
                              posterior_flatness)
-from ggfslam.ggf.features import F_IN, anchor_geometry, local_geometry, positional_encoding
+from ggfslam.ggf.features import F_IN, PlaneBorrowing, anchor_geometry, local_geometry, positional_encoding
 from ggfslam.ggf.field import ResidualField, planar_prior, planar_probability
 from ggfslam.render.api import rasterize
 from ggfslam.render.projection import quat_to_rotmat
@@ -62,6 +62,46 @@ def test_local_geometry_plane_and_sphere():
     _, k_w, _ = local_geometry(pts, 37, w)
     _, k_u, _ = local_geometry(pts, 37)
     assert k_w[0] < 0.1 * k_u[0]
+
+
+def _edge_and_cylinder(spacing=0.04):
+    """Points of a floor (z = 0, x in [0, 1]) meeting a wall (x = 0, z in [0, 1]) along the y axis, and of a
+    1 m tall cylinder of radius 0.2 m, all on a ``spacing`` grid (y in [0, 1])."""
+    t = np.arange(0, 1.0 + 1e-9, spacing)
+    a, y = np.meshgrid(t, t, indexing="ij")
+    floor = np.stack([a.ravel(), y.ravel(), np.zeros(a.size)], 1)
+    wall = np.stack([np.zeros(a.size), y.ravel(), a.ravel()], 1)[a.ravel() > 0]
+    ph = np.arange(0, 2 * np.pi, spacing / 0.2)
+    P, Z = np.meshgrid(ph, t, indexing="ij")
+    cyl = np.stack([5 + 0.2 * np.cos(P.ravel()), 0.2 * np.sin(P.ravel()), Z.ravel()], 1)
+    return np.concatenate([floor, wall]), cyl
+
+
+def test_curvature_sees_a_long_cylinder_patch():
+    """A patch on a cylinder is long along the axis; against that length (lambda_0 / sum) the curvature of a
+    0.2 m pillar read as planar at the ~0.2 m patch, against the narrower extent it does not."""
+    _, cyl = _edge_and_cylinder()
+    _, k, _ = local_geometry(cyl, 32, cell=0.08)
+    assert np.median(k) > 2 * CFG.tau
+
+
+def test_plane_borrowing_at_an_edge():
+    """Points beside a wall-floor edge: their own patch spans both faces and reads curved; a flat patch of a
+    neighbour inside their face lends its plane, its normal included. A cylinder gains nothing from it."""
+    edge, cyl = _edge_and_cylinder()
+    borrow = PlaneBorrowing(k=96, tol=0.02, factor=4.0, min_curvature=CFG.tau / 2)
+    x = edge[:, 0]
+    near = (x > 0.02) & (x < 0.18) & (edge[:, 2] == 0) & (edge[:, 1] > 0.3) & (edge[:, 1] < 0.7)  # floor by the wall
+    n0, k0, _ = local_geometry(edge, 32, cell=0.08)
+    n1, k1, _ = local_geometry(edge, 32, cell=0.08, borrow=borrow)
+    assert np.median(k0[near]) > CFG.tau  # without borrowing the edge reads curved
+    assert k1[near].max() < CFG.tau / 2
+    assert np.abs(n1[near, 2]).min() > 0.999  # the floor's normal, not a tilted mix of floor and wall
+    assert np.abs(n0[near, 2]).min() < 0.99
+    assert np.array_equal(k1[k0 <= CFG.tau / 2], k0[k0 <= CFG.tau / 2])  # flat points keep their patch
+    _, kc0, _ = local_geometry(cyl, 32, cell=0.08)
+    _, kc1, _ = local_geometry(cyl, 32, cell=0.08, borrow=borrow)
+    assert kc1.min() > 2 * CFG.tau and kc1.min() == kc0.min()  # no patch on it is flat enough to lend
 
 
 def _plane_map(n=12, spacing=0.04, obs=5.0):

@@ -6,7 +6,10 @@ that fell in each voxel, so a plane's anchors lie exactly on it, unlike their vo
 - ``n``: unit normal, the PCA direction of least variance of the K nearest points (Open3D KNN) of the
   surface points averaged over cells of ``patch_cell`` voxels, each weighted by the depth points it stands
   for, oriented towards the camera of the keyframe that created the anchor;
-- ``kappa``: curvature, the smallest PCA eigenvalue over the sum of the three (0: plane, 1/3: isotropic);
+- ``kappa``: curvature, lambda_0 / (lambda_0 + 2 lambda_1) of the PCA's ascending eigenvalues (0: plane, 1/3:
+  isotropic; against the narrower tangent extent so that a long patch on a cylinder still reads as curved);
+  near an edge an anchor takes the normal and curvature of a flat neighbouring patch it lies on
+  (``borrow_planes``): its own patch spans both faces;
 - ``T``: keyframes that saw the anchor (``AnchorMap.obs``);
 - ``spacing``: mean distance to the 8 nearest anchors (the surfel radius of AMR follows it).
 The patch is wide (32 cells of 2 voxels: ~0.2 m at a 4 cm voxel): with depth noise of 1-2 cm at 3 m, a
@@ -53,15 +56,28 @@ def cell_means(points: np.ndarray, weights: np.ndarray, cell: float) -> tuple[np
     return mean, w
 
 
+@dataclass(frozen=True)
+class PlaneBorrowing:
+    """How points near an edge take a neighbour's plane (``borrow_planes``)."""
+
+    k: int  # neighbouring points whose patches are candidates (0: off)
+    tol: float  # metres a point may lie off a candidate plane beyond twice that patch's thickness
+    factor: float  # a borrowed curvature counts this many times its value
+    min_curvature: float = 0.0  # points flatter than this keep their own patch (and are not searched)
+
+
 def local_geometry(points: np.ndarray, k: int, weights: np.ndarray | None = None, cell: float | None = None,
-                   k_spacing: int = 8, chunk: int = 32768) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                   k_spacing: int = 8, chunk: int = 32768, borrow: PlaneBorrowing | None = None
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Weighted PCA of the k nearest neighbours of every point [N, 3]: unit normals [N, 3] (unoriented),
-    curvature [N] = lambda_min / sum(lambda), and the mean distance to the ``k_spacing`` nearest points [N].
+    curvature [N] = lambda_0 / (lambda_0 + 2 lambda_1) (eigenvalues ascending), and the mean distance to the
+    ``k_spacing`` nearest points [N].
 
     ``weights`` [N] (default 1): how many samples each point stands for (an anchor's surface point averages
     many depth points; sparse outliers of a noisy surface average few and so count little). With ``cell``
     the neighbours are the weighted means of the points in cubic cells of that size (a coarser cloud), so a
-    wide patch costs k neighbours instead of k * (points per cell)."""
+    wide patch costs k neighbours instead of k * (points per cell). With ``borrow``, points near an edge take
+    the plane of a neighbour's patch they lie on (``borrow_planes``)."""
     n = len(points)
     if n == 0:
         return np.zeros((0, 3), np.float32), np.zeros(0, np.float32), np.zeros(0, np.float32)
@@ -71,6 +87,8 @@ def local_geometry(points: np.ndarray, k: int, weights: np.ndarray | None = None
     k = min(k, len(cloud))
     normals = np.zeros((n, 3), np.float32)
     curvature = np.zeros(n, np.float32)
+    centroids = np.zeros((n, 3), np.float64)
+    thickness = np.zeros(n, np.float32)  # [N] standard deviation of the patch along its normal (m)
     for s in range(0, n, chunk):  # bounded memory: [chunk, k, 3] at a time
         q = pts[s:s + chunk]
         idx, _ = _knn(cloud, q, k)
@@ -81,12 +99,48 @@ def local_geometry(points: np.ndarray, k: int, weights: np.ndarray | None = None
         mu = np.einsum("ck,cki->ci", wf, nb)
         cov = np.matmul(nb.transpose(0, 2, 1) * wf[:, None, :], nb) - mu[:, :, None] * mu[:, None, :]  # [C, 3, 3]
         evals, evecs = np.linalg.eigh(cov.astype(np.float64))  # ascending eigenvalues
+        evals = evals.clip(min=0)
         normals[s:s + chunk] = evecs[:, :, 0]
-        total = evals.sum(axis=1)
-        curvature[s:s + chunk] = np.where(total > 0, evals[:, 0].clip(min=0) / np.maximum(total, 1e-30), 0.0)
+        # against the patch's narrower extent, not the sum: a cylinder's patch is long along its axis, and
+        # that length hid its curvature (a 0.2 m pillar read as planar)
+        denom = evals[:, 0] + 2 * evals[:, 1]
+        curvature[s:s + chunk] = np.where(denom > 0, evals[:, 0] / np.maximum(denom, 1e-30), 0.0)
+        centroids[s:s + chunk] = q + mu
+        thickness[s:s + chunk] = np.sqrt(evals[:, 0])
+    if borrow is not None and borrow.k > 0:
+        normals, curvature = borrow_planes(pts, normals, curvature, centroids, thickness, borrow, chunk)
     ks = min(k_spacing + 1, n)
     spacing = _knn(pts, pts, ks)[1][:, 1:].mean(axis=1) if ks > 1 else np.zeros(n)
     return normals, curvature, spacing.astype(np.float32)
+
+
+def borrow_planes(points: np.ndarray, normals: np.ndarray, curvature: np.ndarray, centroids: np.ndarray,
+                  thickness: np.ndarray, borrow: PlaneBorrowing, chunk: int = 32768) -> tuple[np.ndarray, np.ndarray]:
+    """Normals [N, 3] and curvature [N] after every point [N, 3] took the flattest patch among its ``borrow.k``
+    nearest points' patches whose plane passes through it (within 2 thickness + ``tol``).
+
+    A patch centred on an edge spans both faces and reads as curved; the patch of a neighbour a little
+    inside the point's own face is flat and contains it. The borrowed curvature is scaled by ``factor`` so
+    that only clearly flat patches lend their plane: on a curved surface the neighbours' patches are about
+    as curved as the point's own, and taking their minimum would let noise flatten it (the synthetic room's
+    pillar: 27% of its anchors planar with factor 1, 5% with 4)."""
+    n = len(points)
+    k = min(borrow.k + 1, n)
+    out_n, out_c = normals.copy(), curvature.copy()
+    borrowers = np.nonzero(curvature > borrow.min_curvature)[0]
+    for s in range(0, len(borrowers), chunk):
+        rows = borrowers[s:s + chunk]
+        q = points[rows]
+        idx, _ = _knn(points, q, k)  # [C, k], itself included
+        off = np.abs(np.einsum("ckd,ckd->ck", normals[idx], q[:, None, :] - centroids[idx]))  # [C, k]
+        lends = off <= 2.0 * thickness[idx] + borrow.tol
+        cand = np.where(lends, borrow.factor * curvature[idx], np.inf)  # [C, k]
+        best = cand.argmin(axis=1)
+        flat = cand[np.arange(len(q)), best]
+        pick = flat < curvature[rows]
+        out_c[rows[pick]] = flat[pick]
+        out_n[rows[pick]] = normals[idx[pick, best[pick]]]
+    return out_n, out_c
 
 
 @dataclass
@@ -101,12 +155,12 @@ class AnchorGeometry:
     features: torch.Tensor  # [A, 41] F_in (network-scaled, see the module docstring)
 
 
-def anchor_geometry(amap, camera_centers: dict[int, np.ndarray], k: int, tau: float, cell: float | None = None
-                    ) -> AnchorGeometry:
+def anchor_geometry(amap, camera_centers: dict[int, np.ndarray], k: int, tau: float, cell: float | None = None,
+                    borrow: PlaneBorrowing | None = None) -> AnchorGeometry:
     """Normals, curvature, spacing, colour variance, track count and F_in of every anchor of ``amap``;
     ``camera_centers`` maps keyframe id -> camera centre [3] (world) to orient the normals."""
     surf = amap.surface.numpy()  # [A, 3]
-    normals, curv, spacing = local_geometry(surf, k, amap.surface_n.numpy(), cell)
+    normals, curv, spacing = local_geometry(surf, k, amap.surface_n.numpy(), cell, borrow=borrow)
     # orient towards the camera that created the anchor (grown anchors carry their parent's keyframe)
     src = amap.source_kf.numpy()
     eye = np.zeros_like(surf)

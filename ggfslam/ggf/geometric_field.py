@@ -21,7 +21,7 @@ from ggfslam.gaussians.child_head import SurfelSpec
 from ggfslam.gaussians.decoders import DecodedGaussians
 from ggfslam.ggf.amr import morph_loss, quat_z_to, surfel_shape
 from ggfslam.ggf.aof import EVOLUTION, SUPPRESSION, feedback_loss, feedback_targets, posterior_flatness
-from ggfslam.ggf.features import AnchorGeometry, anchor_geometry
+from ggfslam.ggf.features import AnchorGeometry, PlaneBorrowing, anchor_geometry
 from ggfslam.ggf.field import ResidualField, planar_prior, planar_probability
 
 
@@ -63,7 +63,9 @@ class GeometricGaussianField:
             return False
         c = self.cfg
         cell = c.patch_cell * self.voxel_size if c.patch_cell > 0 else None
-        self.geom = anchor_geometry(amap, camera_centers, c.knn, c.tau, cell)
+        # anchors under tau / 2 already have a prior above 0.9 from curvature: not worth a search
+        borrow = PlaneBorrowing(c.borrow_k, c.borrow_tol * self.voxel_size, c.borrow_factor, c.tau / 2)
+        self.geom = anchor_geometry(amap, camera_centers, c.knn, c.tau, cell, borrow)
         self._align = quat_z_to(self.geom.normals)  # [A, 4]
         self.prior = planar_prior(self.geom.curvature, self.geom.color_var, self.geom.obs, c.tau, c.w1, c.w2, c.t0)
         self._versions, self._refreshed_at, self._p2d = versions, iteration, None
