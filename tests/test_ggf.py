@@ -45,44 +45,46 @@ def _grid(n=20, spacing=0.04):
 def test_local_geometry_plane_and_sphere():
     rng = np.random.default_rng(0)
     plane = _grid() @ np.linalg.qr(rng.normal(size=(3, 3)))[0].T  # a tilted plane
-    n, k, s = local_geometry(plane, 16)
+    n, k, s, _ = local_geometry(plane, 16)
     R = np.linalg.qr(np.random.default_rng(0).normal(size=(3, 3)))[0]
     assert np.abs(np.abs(n @ R[:, 2]) - 1).max() < 1e-4  # normal of the tilted plane, up to sign
     assert k.max() < 1e-6
     assert np.median(s) == pytest.approx(0.04 * 1.5, rel=0.35)  # mean distance to 8 grid neighbours
     d = rng.normal(size=(300, 3))
     sphere = 0.1 * d / np.linalg.norm(d, axis=1, keepdims=True)
-    n, k, _ = local_geometry(sphere, 32)  # 32 of 300 points: a patch of radius ~6 cm
+    n, k = local_geometry(sphere, 32)[:2]  # 32 of 300 points: a patch of radius ~6 cm
     assert np.median(k) > CFG.tau  # a 10 cm ball is curved at that patch size
     radial = sphere / 0.1
     assert np.median(np.abs((n * radial).sum(1))) > 0.95  # normals are radial
     # weights: an outlier standing for one sample barely tilts a plane of points standing for 100
     pts = np.concatenate([_grid(6), [[0.1, 0.1, 0.05]]])
     w = np.concatenate([np.full(36, 100.0), [1.0]])
-    _, k_w, _ = local_geometry(pts, 37, w)
-    _, k_u, _ = local_geometry(pts, 37)
+    k_w = local_geometry(pts, 37, w).curvature
+    k_u = local_geometry(pts, 37).curvature
     assert k_w[0] < 0.1 * k_u[0]
 
 
-def _edge_and_cylinder(spacing=0.04):
+def _edge_and_cylinder(spacing=0.04, arc=np.pi):
     """Points of a floor (z = 0, x in [0, 1]) meeting a wall (x = 0, z in [0, 1]) along the y axis, and of a
-    1 m tall cylinder of radius 0.2 m, all on a ``spacing`` grid (y in [0, 1])."""
+    1 m tall cylinder of radius 0.2 m (the part within ``arc`` radians of the x axis), on a ``spacing`` grid."""
     t = np.arange(0, 1.0 + 1e-9, spacing)
     a, y = np.meshgrid(t, t, indexing="ij")
     floor = np.stack([a.ravel(), y.ravel(), np.zeros(a.size)], 1)
     wall = np.stack([np.zeros(a.size), y.ravel(), a.ravel()], 1)[a.ravel() > 0]
-    ph = np.arange(0, 2 * np.pi, spacing / 0.2)
+    ph = np.arange(-arc, arc + 1e-9, spacing / 0.2)
     P, Z = np.meshgrid(ph, t, indexing="ij")
     cyl = np.stack([5 + 0.2 * np.cos(P.ravel()), 0.2 * np.sin(P.ravel()), Z.ravel()], 1)
     return np.concatenate([floor, wall]), cyl
 
 
 def test_curvature_sees_a_long_cylinder_patch():
-    """A patch on a cylinder is long along the axis; against that length (lambda_0 / sum) the curvature of a
-    0.2 m pillar read as planar at the ~0.2 m patch, against the narrower extent it does not."""
-    _, cyl = _edge_and_cylinder()
-    _, k, _ = local_geometry(cyl, 32, cell=0.08)
-    assert np.median(k) > 2 * CFG.tau
+    """The side of a 0.2 m pillar a camera sees (+-45 deg) gives patches long along the axis: against that
+    length (METHOD.md's lambda_0 / sum) it reads planar at the ~0.25 m patch, against the narrower extent not."""
+    _, cyl = _edge_and_cylinder(arc=np.pi / 4)
+    k = local_geometry(cyl, 32, cell=0.08).curvature
+    k_sum = local_geometry(cyl, 32, cell=0.08, curvature_norm="sum").curvature
+    assert k.min() > CFG.tau
+    assert np.median(k_sum) < 0.6 * CFG.tau
 
 
 def test_plane_borrowing_at_an_edge():
@@ -92,15 +94,17 @@ def test_plane_borrowing_at_an_edge():
     borrow = PlaneBorrowing(k=96, tol=0.02, factor=4.0, min_curvature=CFG.tau / 2)
     x = edge[:, 0]
     near = (x > 0.02) & (x < 0.18) & (edge[:, 2] == 0) & (edge[:, 1] > 0.3) & (edge[:, 1] < 0.7)  # floor by the wall
-    n0, k0, _ = local_geometry(edge, 32, cell=0.08)
-    n1, k1, _ = local_geometry(edge, 32, cell=0.08, borrow=borrow)
+    n0, k0, _, p0 = local_geometry(edge, 32, cell=0.08)
+    n1, k1, _, p1 = local_geometry(edge, 32, cell=0.08, borrow=borrow)
     assert np.median(k0[near]) > CFG.tau  # without borrowing the edge reads curved
     assert k1[near].max() < CFG.tau / 2
     assert np.abs(n1[near, 2]).min() > 0.999  # the floor's normal, not a tilted mix of floor and wall
     assert np.abs(n0[near, 2]).min() < 0.99
+    assert np.abs(p1[near, 2]).max() < 0.0075  # projected onto (nearly) the floor's plane, not the mixed
+    assert np.median(np.abs(p0[near, 2])) > 0.02  # patch's tilted and offset one
     assert np.array_equal(k1[k0 <= CFG.tau / 2], k0[k0 <= CFG.tau / 2])  # flat points keep their patch
-    _, kc0, _ = local_geometry(cyl, 32, cell=0.08)
-    _, kc1, _ = local_geometry(cyl, 32, cell=0.08, borrow=borrow)
+    kc0 = local_geometry(cyl, 32, cell=0.08).curvature
+    kc1 = local_geometry(cyl, 32, cell=0.08, borrow=borrow).curvature
     assert kc1.min() > 2 * CFG.tau and kc1.min() == kc0.min()  # no patch on it is flat enough to lend
 
 
@@ -126,7 +130,24 @@ def test_anchor_geometry_features_and_orientation():
     assert geo.features.shape == (a, F_IN)
     assert torch.allclose(geo.normals, torch.tensor([0.0, 0.0, 1.0]).expand(a, 3), atol=1e-4)  # towards the camera
     assert geo.curvature.max() < 1e-6 and geo.color_var.abs().max() < 1e-6
+    assert torch.allclose(geo.plane_points, amap.surface, atol=1e-5)  # on the plane already
     assert torch.allclose(geo.features[:, 40], torch.log1p(torch.tensor(5.0)).expand(a))
+
+
+def test_field_state_without_a_geometry_field_is_recomputed():
+    """A checkpoint whose cached geometry lacks a field (written by an older version) is not trusted: the
+    next refresh recomputes it, with the same result as a fresh field."""
+    amap = _plane_map()
+    cams = {0: np.array([0.2, 0.2, 3.0])}
+    field = GeometricGaussianField(GGFConfig(), amap.voxel_size)
+    field.refresh(amap, cams)
+    st = copy.deepcopy(field.state())
+    del st["geom"]["plane_points"]
+    old = GeometricGaussianField(GGFConfig(), amap.voxel_size)
+    old.load_state(st)
+    assert old.geom is None
+    assert old.refresh(amap, cams)
+    assert torch.equal(old.geom.plane_points, field.geom.plane_points) and torch.equal(old.p2d(), field.p2d())
 
 
 def test_observations_accumulate_surface_and_colour_variance():
@@ -227,7 +248,7 @@ def _render_plane_alpha(amr: bool, snap: bool = False):
     assert bool(field.planar().all())
     cam = np.array([0.3, 0.3, 1.6])
     g = amap.decode(cam)
-    g2, _ = field.shape(g, amap)
+    g2, _ = field.shape(g)
     T_cw = _looking_down(cam)
     out = rasterize(g2.means, g2.quats, g2.scales, g2.opacities, g2.colors, (300.0, 300.0, 39.5, 39.5, 80, 80),
                     torch.from_numpy(T_cw).float(), settings=RenderSettings(backend="cpu"))
@@ -290,7 +311,7 @@ def test_render_loss_does_not_reach_the_field():
     amap = _plane_map()
     field = GeometricGaussianField(GGFConfig(), amap.voxel_size)
     field.refresh(amap, {0: np.array([0.2, 0.2, 3.0])})
-    g, l_morph = field.shape(amap.decode(np.array([0.2, 0.2, 3.0])), amap)
+    g, l_morph = field.shape(amap.decode(np.array([0.2, 0.2, 3.0])))
     p2d = field.p2d()[g.anchor_index][:, None]
     T_cw = _looking_down(np.array([0.2, 0.2, 3.0]))
     out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, (200.0, 200.0, 31.5, 31.5, 64, 64),

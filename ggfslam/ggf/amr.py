@@ -7,7 +7,8 @@ For a child of an anchor with ``P_2D > tau_thresh`` (normal ``n``, surface point
   thickness ``eps`` (``surfel_eps`` x voxel); tangential radii are at least ``r = surfel_radius * d`` so
   neighbouring surfels overlap and leave no holes;
 - with ``ggf.snap``, the mean moved along ``n`` onto the anchor's plane through ``p`` (the decoder keeps the
-  in-plane position); off by default, see the config field.
+  in-plane position); ``p`` is the anchor's surface point projected onto its patch's plane (``plane_points``
+  of ``ggfslam.ggf.features``), so the plane is averaged over the patch rather than one voxel's depth.
 This is a hard projection of what the decoder outputs, so the render always sees surfels. ``L_morph``
 (``morph_loss``) acts on the decoder's raw output: it pulls the raw shortest axis onto ``n`` and the raw
 thickness to ``eps``, so children keep their surfel shape if their anchor later drops below the threshold.

@@ -7,7 +7,8 @@ that fell in each voxel, so a plane's anchors lie exactly on it, unlike their vo
   surface points averaged over cells of ``patch_cell`` voxels, each weighted by the depth points it stands
   for, oriented towards the camera of the keyframe that created the anchor;
 - ``kappa``: curvature, lambda_0 / (lambda_0 + 2 lambda_1) of the PCA's ascending eigenvalues (0: plane, 1/3:
-  isotropic; against the narrower tangent extent so that a long patch on a cylinder still reads as curved);
+  isotropic; against the narrower tangent extent so that a long patch on a cylinder still reads as curved;
+  METHOD.md's lambda_0 / sum with ``ggf.curvature: sum``);
   near an edge an anchor takes the normal and curvature of a flat neighbouring patch it lies on
   (``borrow_planes``): its own patch spans both faces;
 - ``T``: keyframes that saw the anchor (``AnchorMap.obs``);
@@ -21,6 +22,7 @@ inputs have comparable ranges; the prior uses the raw values.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import open3d as o3d
@@ -56,6 +58,15 @@ def cell_means(points: np.ndarray, weights: np.ndarray, cell: float) -> tuple[np
     return mean, w
 
 
+class LocalGeometry(NamedTuple):
+    """What ``local_geometry`` finds for each of N points."""
+
+    normals: np.ndarray  # [N, 3] unit, unoriented: the patch's direction of least variance
+    curvature: np.ndarray  # [N] 0 on a plane, 1/3 for an isotropic cloud
+    spacing: np.ndarray  # [N] mean distance to the k_spacing nearest points (m)
+    plane_points: np.ndarray  # [N, 3] the point projected onto its patch's plane (a plane averaged over the patch)
+
+
 @dataclass(frozen=True)
 class PlaneBorrowing:
     """How points near an edge take a neighbour's plane (``borrow_planes``)."""
@@ -67,11 +78,10 @@ class PlaneBorrowing:
 
 
 def local_geometry(points: np.ndarray, k: int, weights: np.ndarray | None = None, cell: float | None = None,
-                   k_spacing: int = 8, chunk: int = 32768, borrow: PlaneBorrowing | None = None
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Weighted PCA of the k nearest neighbours of every point [N, 3]: unit normals [N, 3] (unoriented),
-    curvature [N] = lambda_0 / (lambda_0 + 2 lambda_1) (eigenvalues ascending), and the mean distance to the
-    ``k_spacing`` nearest points [N].
+                   k_spacing: int = 8, chunk: int = 32768, borrow: PlaneBorrowing | None = None,
+                   curvature_norm: str = "tangent") -> LocalGeometry:
+    """Weighted PCA of the k nearest neighbours of every point [N, 3] (see ``LocalGeometry``); curvature =
+    lambda_0 / (lambda_0 + 2 lambda_1) (eigenvalues ascending; ``curvature_norm="sum"``: lambda_0 / sum).
 
     ``weights`` [N] (default 1): how many samples each point stands for (an anchor's surface point averages
     many depth points; sparse outliers of a noisy surface average few and so count little). With ``cell``
@@ -80,7 +90,8 @@ def local_geometry(points: np.ndarray, k: int, weights: np.ndarray | None = None
     the plane of a neighbour's patch they lie on (``borrow_planes``)."""
     n = len(points)
     if n == 0:
-        return np.zeros((0, 3), np.float32), np.zeros(0, np.float32), np.zeros(0, np.float32)
+        return LocalGeometry(np.zeros((0, 3), np.float32), np.zeros(0, np.float32), np.zeros(0, np.float32),
+                             np.zeros((0, 3), np.float64))
     pts = np.asarray(points, dtype=np.float64)
     w_pts = np.ones(n) if weights is None else np.maximum(np.asarray(weights, np.float64), 1e-6)
     cloud, w_cloud = (pts, w_pts) if cell is None else cell_means(pts, w_pts, cell)
@@ -103,21 +114,24 @@ def local_geometry(points: np.ndarray, k: int, weights: np.ndarray | None = None
         normals[s:s + chunk] = evecs[:, :, 0]
         # against the patch's narrower extent, not the sum: a cylinder's patch is long along its axis, and
         # that length hid its curvature (a 0.2 m pillar read as planar)
-        denom = evals[:, 0] + 2 * evals[:, 1]
+        denom = evals.sum(axis=1) if curvature_norm == "sum" else evals[:, 0] + 2 * evals[:, 1]
         curvature[s:s + chunk] = np.where(denom > 0, evals[:, 0] / np.maximum(denom, 1e-30), 0.0)
         centroids[s:s + chunk] = q + mu
         thickness[s:s + chunk] = np.sqrt(evals[:, 0])
     if borrow is not None and borrow.k > 0:
-        normals, curvature = borrow_planes(pts, normals, curvature, centroids, thickness, borrow, chunk)
+        normals, curvature, centroids = borrow_planes(pts, normals, curvature, centroids, thickness, borrow, chunk)
     ks = min(k_spacing + 1, n)
     spacing = _knn(pts, pts, ks)[1][:, 1:].mean(axis=1) if ks > 1 else np.zeros(n)
-    return normals, curvature, spacing.astype(np.float32)
+    plane_points = pts - np.einsum("ni,ni->n", normals, pts - centroids)[:, None] * normals
+    return LocalGeometry(normals, curvature, spacing.astype(np.float32), plane_points)
 
 
 def borrow_planes(points: np.ndarray, normals: np.ndarray, curvature: np.ndarray, centroids: np.ndarray,
-                  thickness: np.ndarray, borrow: PlaneBorrowing, chunk: int = 32768) -> tuple[np.ndarray, np.ndarray]:
-    """Normals [N, 3] and curvature [N] after every point [N, 3] took the flattest patch among its ``borrow.k``
-    nearest points' patches whose plane passes through it (within 2 thickness + ``tol``).
+                  thickness: np.ndarray, borrow: PlaneBorrowing, chunk: int = 32768
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Normals [N, 3], curvature [N] and patch centroids [N, 3] after every point [N, 3] took the flattest
+    patch among its ``borrow.k`` nearest points' patches whose plane passes through it (within 2 thickness +
+    ``tol``).
 
     A patch centred on an edge spans both faces and reads as curved; the patch of a neighbour a little
     inside the point's own face is flat and contains it. The borrowed curvature is scaled by ``factor`` so
@@ -126,7 +140,7 @@ def borrow_planes(points: np.ndarray, normals: np.ndarray, curvature: np.ndarray
     pillar: 27% of its anchors planar with factor 1, 5% with 4)."""
     n = len(points)
     k = min(borrow.k + 1, n)
-    out_n, out_c = normals.copy(), curvature.copy()
+    out_n, out_c, out_p = normals.copy(), curvature.copy(), centroids.copy()
     borrowers = np.nonzero(curvature > borrow.min_curvature)[0]
     for s in range(0, len(borrowers), chunk):
         rows = borrowers[s:s + chunk]
@@ -139,8 +153,10 @@ def borrow_planes(points: np.ndarray, normals: np.ndarray, curvature: np.ndarray
         flat = cand[np.arange(len(q)), best]
         pick = flat < curvature[rows]
         out_c[rows[pick]] = flat[pick]
-        out_n[rows[pick]] = normals[idx[pick, best[pick]]]
-    return out_n, out_c
+        lender = idx[pick, best[pick]]
+        out_n[rows[pick]] = normals[lender]
+        out_p[rows[pick]] = centroids[lender]
+    return out_n, out_c, out_p
 
 
 @dataclass
@@ -153,14 +169,16 @@ class AnchorGeometry:
     color_var: torch.Tensor  # [A] V_color
     obs: torch.Tensor  # [A] T
     features: torch.Tensor  # [A, 41] F_in (network-scaled, see the module docstring)
+    plane_points: torch.Tensor  # [A, 3] the surface point projected onto its (own or borrowed) patch's plane
 
 
 def anchor_geometry(amap, camera_centers: dict[int, np.ndarray], k: int, tau: float, cell: float | None = None,
-                    borrow: PlaneBorrowing | None = None) -> AnchorGeometry:
+                    borrow: PlaneBorrowing | None = None, curvature_norm: str = "tangent") -> AnchorGeometry:
     """Normals, curvature, spacing, colour variance, track count and F_in of every anchor of ``amap``;
     ``camera_centers`` maps keyframe id -> camera centre [3] (world) to orient the normals."""
     surf = amap.surface.numpy()  # [A, 3]
-    normals, curv, spacing = local_geometry(surf, k, amap.surface_n.numpy(), cell, borrow=borrow)
+    normals, curv, spacing, plane = local_geometry(surf, k, amap.surface_n.numpy(), cell, borrow=borrow,
+                                                   curvature_norm=curvature_norm)
     # orient towards the camera that created the anchor (grown anchors carry their parent's keyframe)
     src = amap.source_kf.numpy()
     eye = np.zeros_like(surf)
@@ -172,4 +190,5 @@ def anchor_geometry(amap, camera_centers: dict[int, np.ndarray], k: int, tau: fl
     obs = amap.obs.clone()
     feats = torch.cat([positional_encoding(amap.surface), n_t, (c_t / tau).clamp(max=10.0)[:, None],
                        torch.log1p(obs)[:, None]], dim=1)  # [A, 41]
-    return AnchorGeometry(n_t, c_t, torch.from_numpy(spacing), amap.color_variance(), obs, feats)
+    return AnchorGeometry(n_t, c_t, torch.from_numpy(spacing), amap.color_variance(), obs, feats,
+                          torch.from_numpy(plane.astype(np.float32)))

@@ -65,7 +65,7 @@ class GeometricGaussianField:
         cell = c.patch_cell * self.voxel_size if c.patch_cell > 0 else None
         # anchors under tau / 2 already have a prior above 0.9 from curvature: not worth a search
         borrow = PlaneBorrowing(c.borrow_k, c.borrow_tol * self.voxel_size, c.borrow_factor, c.tau / 2)
-        self.geom = anchor_geometry(amap, camera_centers, c.knn, c.tau, cell, borrow)
+        self.geom = anchor_geometry(amap, camera_centers, c.knn, c.tau, cell, borrow, c.curvature)
         self._align = quat_z_to(self.geom.normals)  # [A, 4]
         self.prior = planar_prior(self.geom.curvature, self.geom.color_var, self.geom.obs, c.tau, c.w1, c.w2, c.t0)
         self._versions, self._refreshed_at, self._p2d = versions, iteration, None
@@ -83,8 +83,8 @@ class GeometricGaussianField:
         return self.p2d() > self.cfg.planar_threshold
 
     # --- AMR -----------------------------------------------------------------------------------------
-    def surfel_spec(self, amap, index: torch.Tensor) -> SurfelSpec | None:
-        """AMR's inputs for anchors ``index`` [M] of ``amap`` (the child head applies them while decoding); None
+    def surfel_spec(self, index: torch.Tensor) -> SurfelSpec | None:
+        """AMR's inputs for anchors ``index`` [M] (the child head applies them while decoding); None
         when AMR is off or none of them is planar."""
         if not self.cfg.amr or len(index) == 0:
             return None
@@ -93,7 +93,7 @@ class GeometricGaussianField:
             return None
         geo, c = self.geom, self.cfg
         return SurfelSpec(planar, geo.normals.index_select(0, index), self._align.index_select(0, index),
-                          amap.surface.index_select(0, index), c.surfel_radius * geo.spacing.index_select(0, index),
+                          geo.plane_points.index_select(0, index), c.surfel_radius * geo.spacing.index_select(0, index),
                           c.surfel_eps * self.voxel_size, c.snap)
 
     def morph(self, g: DecodedGaussians) -> torch.Tensor:
@@ -112,8 +112,8 @@ class GeometricGaussianField:
         return morph_loss(quats, scales, n, c.surfel_eps * self.voxel_size, self.voxel_size, c.lambda_dir,
                           c.lambda_thin)
 
-    def shape(self, g: DecodedGaussians, amap) -> tuple[DecodedGaussians, torch.Tensor]:
-        """Children g of ``amap`` decoded without AMR (``decode(reference=True)``) with AMR applied to those of
+    def shape(self, g: DecodedGaussians) -> tuple[DecodedGaussians, torch.Tensor]:
+        """Children g of the map decoded without AMR (``decode(reference=True)``) with AMR applied to those of
         planar anchors in plain torch, and L_morph: the reference of the child head's AMR."""
         zero = torch.zeros(())
         if not self.cfg.amr or len(g) == 0:
@@ -126,7 +126,7 @@ class GeometricGaussianField:
         n = geo.normals.index_select(0, a)  # [G, 3]
         eps = c.surfel_eps * self.voxel_size
         radius = c.surfel_radius * geo.spacing.index_select(0, a)
-        quats, scales, means = surfel_shape(g.quats, g.scales, g.means, n, amap.surface.index_select(0, a), radius,
+        quats, scales, means = surfel_shape(g.quats, g.scales, g.means, n, geo.plane_points.index_select(0, a), radius,
                                             eps, self._align.index_select(0, a), planar, c.snap)
         l_morph = self.morph(g)
         return DecodedGaussians(means, quats, scales, g.opacities, g.colors, g.anchor_index, g.child_index), l_morph
@@ -179,9 +179,14 @@ class GeometricGaussianField:
         """Restore ``state()``."""
         self.net.load_state_dict(st["net"])
         self.opt.load_state_dict(st["opt"])
-        self.geom = None if st["geom"] is None else AnchorGeometry(**st["geom"])
+        fields = {f.name for f in dataclasses.fields(AnchorGeometry)}
+        if st["geom"] is not None and set(st["geom"]) == fields:
+            self.geom = AnchorGeometry(**st["geom"])
+            self._versions = tuple(st["versions"])
+        else:  # none yet, or written by a version with other fields: the next refresh() recomputes it
+            self.geom, self._versions = None, (-1, -1, -1)
         self.prior = st["prior"]
         self._align = quat_z_to(self.geom.normals) if self.geom is not None else None
-        self._versions, self._refreshed_at = tuple(st["versions"]), st["refreshed_at"]
+        self._refreshed_at = st["refreshed_at"]
         self.updates, self.regimes, self.last_loss = st["updates"], np.asarray(st["regimes"]), st["last_loss"]
         self._p2d = None

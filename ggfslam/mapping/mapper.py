@@ -305,7 +305,7 @@ class Mapper:
         if self.ggf is None:
             return self.map.decode(cam_center, mask)
         self._refresh_field()
-        return self.map.decode(cam_center, mask, lambda idx: self.ggf.surfel_spec(self.map, idx))
+        return self.map.decode(cam_center, mask, self.ggf.surfel_spec)
 
     def _decode_view(self, T_wc: np.ndarray, intr: Intrinsics, without_kf: int | None = None
                      ) -> tuple[DecodedGaussians, torch.Tensor]:
@@ -585,3 +585,4 @@ class Mapper:
                     raise ValueError("checkpoint has no Geometric-Gaussian Field state but ggf.enabled is true: "
                                      "resume with the configuration the run started with")
                 self.ggf.load_state(st["ggf"])
+                self._refresh_field()  # a no-op unless the checkpoint's geometry is missing or stale
