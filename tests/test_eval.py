@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 import torch
 
-from ggfslam.eval.image import LPIPS, PSNR, SSIM, DepthL1, depth_l1_cm, psnr, ssim, ssim_np
+from ggfslam.eval.image import (LPIPS, PSNR, SSIM, DepthL1, depth_error_split, depth_l1_cm, psnr, ssim,
+                                ssim_np)
 from ggfslam.eval.perf import StageTimer, peak_rss_mb
 from ggfslam.eval.report import metrics_table
 from ggfslam.eval.trajectory import ATE, RPE, trajectory_metrics
@@ -169,3 +170,24 @@ def test_release_free_memory_returns_freed_heap_to_the_os():
     held = current_rss_mb()
     assert release_free_memory()
     assert current_rss_mb() < held - 100
+
+
+def test_depth_error_split_adds_up_to_the_l1():
+    """A wall at 2 m with a box at 1 m: a blurred edge (the tail at a discontinuity), a hole, far noise."""
+    ref = np.full((60, 80), 2.0)
+    ref[20:40, 20:40] = 1.0
+    ref[0, 0] = 0.0  # no sensor depth: not counted
+    depth = ref.copy()
+    depth[20:40, 19] = 1.5  # blended foreground/background beside the box's edge: 50 cm off
+    depth[50, 60:70] = 0.0  # a hole: 2 m off
+    depth[55, 70:75] += 0.08  # 8 cm off, away from any discontinuity
+    depth[5:15, 5:15] += 0.01  # 1 cm off
+    split = depth_error_split(depth, ref)
+    n = (ref > 0).sum()
+    assert split["depth_hole_cm"] == pytest.approx(100 * 10 * 2.0 / n)
+    assert split["depth_tail_step_cm"] == pytest.approx(100 * 20 * 0.5 / n)
+    assert split["depth_tail_cm"] == pytest.approx(100 * (20 * 0.5 + 5 * 0.08) / n)
+    rest = 100 * 100 * 0.01 / n
+    total = split["depth_hole_cm"] + split["depth_tail_cm"] + rest
+    assert depth_l1_cm(depth, ref) == pytest.approx(total)
+    assert split["depth_median_cm"] == 0.0

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 from pytorch_msssim import ssim as _ms_ssim
@@ -78,6 +79,35 @@ def depth_l1_cm(depth: np.ndarray, ref: np.ndarray) -> float:
     if not np.any(valid):
         return float("nan")
     return float(100.0 * np.mean(np.abs(depth[valid].astype(np.float64) - ref[valid])))
+
+DEPTH_TAIL_M = 0.05  # an error above this is in the tail of a depth L1
+DEPTH_STEP_M = 0.10  # a step between neighbouring reference pixels above this is a depth discontinuity
+DEPTH_STEP_PX = 3  # pixels within this distance of a discontinuity are "at" it
+DEPTH_SPLIT_KEYS = ("depth_median_cm", "depth_hole_cm", "depth_tail_cm", "depth_tail_step_cm")
+
+
+def depth_error_split(depth: np.ndarray, ref: np.ndarray) -> dict:
+    """Where the depth L1 of ``depth`` [H, W] against ``ref`` [H, W] (m, 0 = none) comes from, in centimetres
+    averaged over the valid reference pixels as ``depth_l1_cm`` is, so the parts add up to it:
+    ``depth_hole_cm`` (nothing rendered), ``depth_tail_cm`` (rendered, off by more than 5 cm; of which
+    ``depth_tail_step_cm`` within 3 px of a reference depth discontinuity, where blended depth mixes
+    foreground and background) and the rest; plus ``depth_median_cm``, the median error where rendered."""
+    valid = ref > 0
+    if not np.any(valid):
+        return dict.fromkeys(DEPTH_SPLIT_KEYS, float("nan"))
+    err = np.where(valid, np.abs(depth.astype(np.float64) - ref), 0.0)  # [H, W]
+    covered = valid & (depth > 0)
+    tail = covered & (err > DEPTH_TAIL_M)
+    step = np.zeros(ref.shape, bool)
+    step[:, 1:] |= np.abs(np.diff(ref, axis=1)) > DEPTH_STEP_M
+    step[1:, :] |= np.abs(np.diff(ref, axis=0)) > DEPTH_STEP_M
+    size = 2 * DEPTH_STEP_PX + 1
+    near_step = cv2.dilate(step.astype(np.uint8), np.ones((size, size), np.uint8)) > 0
+    n = valid.sum()
+    return {"depth_median_cm": float(100.0 * np.median(err[covered])) if covered.any() else float("nan"),
+            "depth_hole_cm": float(100.0 * err[valid & ~covered].sum() / n),
+            "depth_tail_cm": float(100.0 * err[tail].sum() / n),
+            "depth_tail_step_cm": float(100.0 * err[tail & near_step].sum() / n)}
 
 
 class LPIPS:

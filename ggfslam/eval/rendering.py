@@ -5,7 +5,8 @@ import time
 
 import numpy as np
 
-from ggfslam.eval.image import LPIPS, depth_l1_cm, normal_error_deg, psnr, ssim_np
+from ggfslam.eval.image import (DEPTH_SPLIT_KEYS, LPIPS, depth_error_split, depth_l1_cm, normal_error_deg, psnr,
+                                ssim_np)
 from ggfslam.geometry.depth import normals_from_depth
 from ggfslam.mapping.keyframe_store import resize_depth, resize_rgbd
 
@@ -31,8 +32,9 @@ def render_metrics(mapper, dataset, poses: np.ndarray, indices: np.ndarray, intr
     normal error (rendered normals against normals of the reference depth, both by the same finite
     differences) use the noise-free depth of the ground-truth mesh where the dataset has it
     (``frame.meta['depth_gt']``, synthetic sequences with depth noise), else the sensor depth; with
-    ``depth_gt`` the L1 against the sensor depth is also reported (``depth_l1_sensor_cm``).
-    Returns the means, the render speed and the per-frame values."""
+    ``depth_gt`` the L1 against the sensor depth is also reported (``depth_l1_sensor_cm``). Where the depth L1
+    comes from (holes, the tail beyond 5 cm and its part at depth discontinuities, the median) is split out as
+    ``depth_error_split`` does. Returns the means, the render speed and the per-frame values."""
     kf_frames = {k: mapper.store.frame_index(k) for k in mapper.store.ids()}
     exposure = nearest_keyframes(np.asarray(indices), kf_frames)
     rows, render_s = [], 0.0
@@ -48,7 +50,8 @@ def render_metrics(mapper, dataset, poses: np.ndarray, indices: np.ndarray, intr
         ref_normals = normals_from_depth(depth, intr.fx, intr.fy, intr.cx, intr.cy)
         row = {"index": int(i), "psnr": psnr(img, rgb), "ssim": ssim_np(img, rgb),
                "depth_l1_cm": depth_l1_cm(out.depth.numpy(), depth),
-               "normal_error_deg": normal_error_deg(out.normals.numpy(), ref_normals)}
+               "normal_error_deg": normal_error_deg(out.normals.numpy(), ref_normals),
+               **depth_error_split(out.depth.numpy(), depth)}
         if gt_depth is not None:
             row["depth_l1_sensor_cm"] = depth_l1_cm(out.depth.numpy(), sensor_depth)
         if lpips is not None and lpips.available:
@@ -62,6 +65,7 @@ def render_metrics(mapper, dataset, poses: np.ndarray, indices: np.ndarray, intr
 
     res = {"psnr": mean("psnr"), "ssim": mean("ssim"), "depth_l1_cm": mean("depth_l1_cm"),
            "normal_error_deg": mean("normal_error_deg"),
+           **{k: mean(k) for k in DEPTH_SPLIT_KEYS},
            **({"depth_l1_sensor_cm": mean("depth_l1_sensor_cm")} if any("depth_l1_sensor_cm" in r for r in rows) else {}),
            "lpips": mean("lpips") if lpips is not None and lpips.available else "no weights",
            "frames": n, "width": intr.width, "height": intr.height,
