@@ -513,7 +513,8 @@ class GGFConfig(_Section):
         for name in ("surfel_eps", "t0", "lr"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0")
-        for name in ("patch_cell", "borrow_tol", "w1", "w2", "surfel_radius", "lambda_morph", "lambda_dir", "lambda_thin", "lambda_con"):
+        for name in ("patch_cell", "borrow_tol", "w1", "w2", "surfel_radius", "lambda_morph", "lambda_dir",
+                     "lambda_thin", "lambda_con"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0")
         return self

@@ -80,6 +80,7 @@ def depth_l1_cm(depth: np.ndarray, ref: np.ndarray) -> float:
         return float("nan")
     return float(100.0 * np.mean(np.abs(depth[valid].astype(np.float64) - ref[valid])))
 
+
 DEPTH_TAIL_M = 0.05  # an error above this is in the tail of a depth L1
 DEPTH_STEP_M = 0.10  # a step between neighbouring reference pixels above this is a depth discontinuity
 DEPTH_STEP_PX = 3  # pixels within this distance of a discontinuity are "at" it

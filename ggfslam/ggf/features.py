@@ -13,7 +13,7 @@ that fell in each voxel, so a plane's anchors lie exactly on it, unlike their vo
   (``borrow_planes``): its own patch spans both faces;
 - ``T``: keyframes that saw the anchor (``AnchorMap.obs``);
 - ``spacing``: mean distance to the 8 nearest anchors (the surfel radius of AMR follows it).
-The patch is wide (32 cells of 2 voxels: ~0.2 m at a 4 cm voxel): with depth noise of 1-2 cm at 3 m, a
+The patch is wide (32 cells of 2 voxels: ~0.25 m radius at a 4 cm voxel): with depth noise of 1-2 cm at 3 m, a
 smaller patch cannot tell a wall from a 0.2 m pillar (curvature grows with the patch radius squared, noise
 shrinks); averaging cells first makes that patch cost 32 neighbours instead of ~100.
 The network input carries ``kappa / tau`` (clipped to 10) and ``log(1 + T)`` instead of the raw values so its

@@ -93,8 +93,8 @@ class GeometricGaussianField:
             return None
         geo, c = self.geom, self.cfg
         return SurfelSpec(planar, geo.normals.index_select(0, index), self._align.index_select(0, index),
-                          geo.plane_points.index_select(0, index), c.surfel_radius * geo.spacing.index_select(0, index),
-                          c.surfel_eps * self.voxel_size, c.snap)
+                          geo.plane_points.index_select(0, index),
+                          c.surfel_radius * geo.spacing.index_select(0, index), c.surfel_eps * self.voxel_size, c.snap)
 
     def morph(self, g: DecodedGaussians) -> torch.Tensor:
         """L_morph over (an even sample of) the children of planar anchors in g, on the decoder's own shape
@@ -126,8 +126,8 @@ class GeometricGaussianField:
         n = geo.normals.index_select(0, a)  # [G, 3]
         eps = c.surfel_eps * self.voxel_size
         radius = c.surfel_radius * geo.spacing.index_select(0, a)
-        quats, scales, means = surfel_shape(g.quats, g.scales, g.means, n, geo.plane_points.index_select(0, a), radius,
-                                            eps, self._align.index_select(0, a), planar, c.snap)
+        quats, scales, means = surfel_shape(g.quats, g.scales, g.means, n, geo.plane_points.index_select(0, a),
+                                            radius, eps, self._align.index_select(0, a), planar, c.snap)
         l_morph = self.morph(g)
         return DecodedGaussians(means, quats, scales, g.opacities, g.colors, g.anchor_index, g.child_index), l_morph
 
