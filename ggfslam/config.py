@@ -449,7 +449,9 @@ class GGFConfig(_Section):
     borrow_k: int = 96
     """Nearest anchors whose patches an anchor may take as its plane when it lies on one (0: off). A patch
     centred near an edge spans both faces and reads as curved; on the synthetic room this lifted the planar
-    faces' anchors that end planar from 80% to 93%."""
+    faces' anchors that end planar from 80% to 93%. On Replica office0 (exact depth) it raised the planar
+    anchors from 62% to 85%, 6% of them with normals more than 20 deg off the mesh's, and cost 0.27 dB PSNR and
+    0.09 cm depth L1 (31.90 dB, 0.85 cm against 32.17 dB, 0.76 cm with 0)."""
     borrow_tol: float = 0.5
     """How far (in voxels) an anchor's surface point may lie off a neighbour's plane, beyond twice that patch's
     thickness, and still take it (surface points of voxels on an edge average both faces)."""
