@@ -23,6 +23,7 @@ ROWS = [
     ("rendering", "lpips", "LPIPS", "{}"),
     ("rendering", "depth_l1_cm", "Depth L1 [cm]", "{:.2f}"),
     ("rendering", "depth_median_cm", "  median depth error [cm]", "{:.2f}"),
+    ("rendering", "depth_hole_cm", "  L1 from holes (nothing rendered) [cm]", "{:.2f}"),
     ("rendering", "depth_tail_cm", "  L1 from errors > 5 cm [cm]", "{:.2f}"),
     ("rendering", "depth_tail_step_cm", "  ... of it at depth discontinuities [cm]", "{:.2f}"),
     ("rendering", "normal_error_deg", "normal error [deg]", "{:.1f}"),
