@@ -276,5 +276,5 @@ def whitened_rows(model: GCGRModel, kind: str, pose: gtsam.Pose3) -> np.ndarray:
 
 
 __all__ = ["GCGRModel", "MapView", "SensorView", "RenderFn", "select_pixels", "residual_rows",
-           "ray_plane_jacobians", "locally_flat", "eliminate_offset", "moved_past", "whitened_rows", "DEPTH_WEIGHT", "NORMAL_WEIGHT", "KINDS",
-           "MIN_PIXELS"]
+           "ray_plane_jacobians", "locally_flat", "eliminate_offset", "moved_past", "whitened_rows", "DEPTH_WEIGHT",
+           "NORMAL_WEIGHT", "KINDS", "MIN_PIXELS"]

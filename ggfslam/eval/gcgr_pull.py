@@ -137,13 +137,12 @@ def keyframe_pulls(run_dir: str | Path, overrides: list[str] | None = None, star
         raise RunDirError(f"{run_dir}: no keyframe has a ground-truth pose")
     X_cal = rigid_mean(np.stack([np.linalg.inv(gt[k]) @ est[k] for k in ids]))  # [4, 4] constant camera offset
     cal = {k: gt[k] @ X_cal for k in ids}
-    camera = run_camera(run_dir)
-    intr = GCGRSource(mapper, camera, gcfg).intr
+    # one source serves every start: ``build`` renders at the start pose and replaces the keyframe's cached model
+    source = GCGRSource(mapper, run_camera(run_dir), gcfg)
     rows = []
     for k in ids[::every]:
         for start in starts:
             T0 = {"estimate": est, "gt": gt, "gt_calibrated": cal}[start][k]
-            source = GCGRSource(mapper, camera, gcfg)  # a fresh cache: every model renders at T0
             r = pull_keyframe(source, k, T0, prior_sigmas)
             if r is None:
                 rows.append({"kf": k, "start": start, "pixels": 0})
@@ -159,7 +158,7 @@ def keyframe_pulls(run_dir: str | Path, overrides: list[str] | None = None, star
             rows.append(row | {"est_after_cm": to_est[0], "est_after_deg": to_est[1]})
     offset = pose_difference(np.eye(4), X_cal)
     return {"run": str(run_dir), "calibration_offset": {"cm": offset[0], "deg": offset[1]},
-            "gcgr": {"width": intr.width, "height": intr.height, "overrides": list(overrides or [])},
+            "gcgr": {"width": source.intr.width, "height": source.intr.height, "overrides": list(overrides or [])},
             "prior_sigmas": list(prior_sigmas), "keyframes": len(ids[::every]), "rows": rows,
             "summary": {s: summarize([r for r in rows if r["start"] == s]) for s in starts}}
 
@@ -175,7 +174,8 @@ def summarize(rows: list[dict]) -> dict:
         return float(np.median([r[key] for r in used]))
 
     bins = sorted({b for r in used for b in r["bias_by_depth"]}, key=lambda b: float(b.split("-")[0]))
-    dist = {f"{n}_{w}_{u}": med(f"{n}_{w}_{u}") for n in ("gt", "cal") for w in ("before", "after") for u in ("cm", "deg")}
+    dist = {f"{n}_{w}_{u}": med(f"{n}_{w}_{u}")
+            for n in ("gt", "cal") for w in ("before", "after") for u in ("cm", "deg")}
     return {"keyframes": len(used), "pixels": med("pixels"), "moved_cm": med("moved_cm"), "moved_deg": med("moved_deg"),
             **dist, "est_after_cm": med("est_after_cm"), "depth_bias_mm": med("depth_bias_mm"),
             "depth_abs_mm": med("depth_abs_mm"),
