@@ -134,6 +134,32 @@ def render(
 
 @app.command()
 @user_errors
+def view(
+    run_dir: Path = typer.Argument(..., help="A run directory written by `ggfslam run` (finished or stopped)."),
+    port: int = typer.Option(8080, help="Port to serve on (0: any free one)."),
+    host: str = typer.Option("127.0.0.1", help="Address to bind; the default is this machine only (use SSH "
+                             "port forwarding), 0.0.0.0 serves every network."),
+    max_splats: int = typer.Option(1_000_000, help="Show at most this many Gaussians (the most opaque)."),
+):
+    """Serve a web viewer of a run: the Gaussian map, mesh, trajectories and factor graph (Ctrl-C stops it)."""
+    import time
+
+    from ggfslam.viewer.app import serve_run, viewer_address
+
+    server, scene = serve_run(run_dir, host=host, port=port, max_splats=max_splats)
+    for layer, why in scene.layers.problems.items():
+        err_console.print(f"[yellow]{layer}:[/yellow] {why}", highlight=False, soft_wrap=True)
+    console.print(f"viewer of {scene.layers.run_dir}: {viewer_address(server, host)}", highlight=False,
+                  soft_wrap=True)
+    try:
+        while True:
+            time.sleep(3600)
+    finally:
+        server.stop()
+
+
+@app.command()
+@user_errors
 def synth(
     out: Path = typer.Argument(..., help="Folder to write the sequence into (TUM layout + camera.yaml + mesh.ply)."),
     source: str = typer.Option("procedural", help="procedural | replica | mesh"),

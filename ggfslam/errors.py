@@ -29,3 +29,7 @@ class ConfigError(GGFSlamError):
 
 class RunDirError(GGFSlamError):
     """A run directory cannot be created, read or would be overwritten."""
+
+
+class ViewerError(GGFSlamError):
+    """The web viewer cannot start (port taken, address not available, viser not installed)."""
