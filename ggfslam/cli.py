@@ -1,9 +1,11 @@
-"""Command line: ``ggfslam run | demo | eval | render | synth | bench | calibrate-depth | config-help``."""
+"""Command line: ``ggfslam run | demo | eval | render | view | synth | bench | calibrate-depth | config-help``."""
 from __future__ import annotations
 
+import contextlib
 import functools
 import shutil
 import sys
+import time
 from datetime import datetime
 from pathlib import Path
 from typing import Optional
@@ -51,6 +53,25 @@ def _print_result(metrics: dict, run_dir: Path, title: str) -> None:
     console.print(f"run directory: {run_dir}")
 
 
+@contextlib.contextmanager
+def _live_viewer(view: bool, host: str, port: int):
+    """With ``view``, a live viewer for the run (imported only then), kept serving after the run until Ctrl-C."""
+    if not view:
+        yield None
+        return
+    from ggfslam.viewer.app import viewer_address
+    from ggfslam.viewer.live import LiveViewer
+
+    viewer = LiveViewer(host, port)
+    console.print(f"live viewer: {viewer_address(viewer.port, host)}", highlight=False, soft_wrap=True)
+    try:
+        yield viewer
+        console.print("the run is finished; the viewer shows its folder until Ctrl-C")
+        _serve_until_interrupted()
+    finally:
+        viewer.close()
+
+
 @app.command()
 @user_errors
 def run(
@@ -60,6 +81,9 @@ def run(
     overwrite: bool = typer.Option(False, help="Replace an existing run directory made by ggfslam."),
     resume: bool = typer.Option(False, "--resume", help="Continue an interrupted run from its checkpoint."),
     no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bar."),
+    view: bool = typer.Option(False, "--view", help="Serve the web viewer, updated live while the sequence runs."),
+    port: int = typer.Option(8080, help="--view: port to serve on (0: any free one)."),
+    host: str = typer.Option("127.0.0.1", help="--view: address to bind (default: this machine only)."),
 ):
     """Run SLAM on a configured sequence and write a run directory."""
     from ggfslam.config import load_config
@@ -74,8 +98,9 @@ def run(
     cfg = load_config(config, set_)  # before the heavy imports: a bad config fails in a blink
     from ggfslam import slam
 
-    metrics = slam.run(cfg, out, overwrite=overwrite, progress=not no_progress, resume=resume)
-    _print_result(metrics, out, f"{cfg.name}: {metrics['sequence']['dataset']}")
+    with _live_viewer(view, host, port) as viewer:
+        metrics = slam.run(cfg, out, overwrite=overwrite, progress=not no_progress, resume=resume, observer=viewer)
+        _print_result(metrics, out, f"{cfg.name}: {metrics['sequence']['dataset']}")
 
 
 @app.command()
@@ -84,6 +109,9 @@ def demo(
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Run directory (default: runs/demo-<time>)."),
     frames: int = typer.Option(120, help="Number of synthetic frames."),
     set_: list[str] = typer.Option([], "--set", help="Override a config value (repeatable)."),
+    view: bool = typer.Option(False, "--view", help="Serve the web viewer, updated live while the sequence runs."),
+    port: int = typer.Option(8080, help="--view: port to serve on (0: any free one)."),
+    host: str = typer.Option("127.0.0.1", help="--view: address to bind (default: this machine only)."),
 ):
     """Generate the built-in synthetic sequence, run the whole pipeline on it and print the metrics."""
     import copy
@@ -95,9 +123,10 @@ def demo(
     data["dataset"]["synthetic"]["n_frames"] = frames
     cfg = config_from_dict(apply_overrides(data, set_), "demo")
     out = out or Path("runs") / f"demo-{datetime.now().strftime('%Y%m%d-%H%M%S')}"
-    console.print("rendering the synthetic sequence (cached after the first time) ...")
-    metrics = slam.run(cfg, out)
-    _print_result(metrics, out, "ggfslam demo: synthetic room")
+    with _live_viewer(view, host, port) as viewer:
+        console.print("rendering the synthetic sequence (cached after the first time) ...")
+        metrics = slam.run(cfg, out, observer=viewer)
+        _print_result(metrics, out, "ggfslam demo: synthetic room")
 
 
 @app.command("eval")
@@ -142,20 +171,26 @@ def view(
     max_splats: int = typer.Option(1_000_000, help="Show at most this many Gaussians (the most opaque)."),
 ):
     """Serve a web viewer of a run: the Gaussian map, mesh, trajectories and factor graph (Ctrl-C stops it)."""
-    import time
-
     from ggfslam.viewer.app import serve_run, viewer_address
 
     server, scene = serve_run(run_dir, host=host, port=port, max_splats=max_splats)
     for layer, why in scene.layers.problems.items():
         err_console.print(f"[yellow]{layer}:[/yellow] {why}", highlight=False, soft_wrap=True)
-    console.print(f"viewer of {scene.layers.run_dir}: {viewer_address(server, host)}", highlight=False,
+    console.print(f"viewer of {scene.layers.run_dir}: {viewer_address(server.get_port(), host)}", highlight=False,
                   soft_wrap=True)
+    try:
+        _serve_until_interrupted()
+    finally:
+        server.stop()
+
+
+def _serve_until_interrupted() -> None:
+    """Block until Ctrl-C, which ends serving normally (exit status 0)."""
     try:
         while True:
             time.sleep(3600)
-    finally:
-        server.stop()
+    except KeyboardInterrupt:
+        console.print("viewer stopped")
 
 
 @app.command()

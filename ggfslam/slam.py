@@ -200,12 +200,13 @@ class _StopRequests:
 
 
 def run(config: Config, out_dir: str | Path, overwrite: bool = False, progress: bool | None = None,
-        resume: bool = False) -> dict:
+        resume: bool = False, observer=None) -> dict:
     """Run the system on the configured sequence, write the run directory and return its metrics.
 
     With ``resume``, ``out_dir`` must be an unfinished run; it continues from its checkpoint (from the first frame
     when it stopped before writing one). A run that stops early (an error, Ctrl-C, SIGTERM) first saves what it
-    has (``_save_stopped_run``)."""
+    has (``_save_stopped_run``). ``observer`` (e.g. ``viewer.live.LiveViewer``) is told ``started(config, dataset,
+    run_dir, tracker, mapper)``, ``frame(frame, result)`` after each tracked frame and ``finished(run_dir)``."""
     setup_runtime(config)
     dataset = open_dataset_from_config(config.dataset)  # fails on bad input before the run folder is touched
     run_dir, ckpt = _open_run_dir(config, out_dir, overwrite, resume)
@@ -215,13 +216,20 @@ def run(config: Config, out_dir: str | Path, overwrite: bool = False, progress: 
         with _StopRequests() as stop:
             log.info("run %s on %s", config.name, dataset.describe())
             _restore_or_start(config, dataset, run_dir, ckpt, st)
-            _track_sequence(config, dataset, run_dir, st, stop, progress)
+            if observer is not None:
+                observer.started(config, dataset, run_dir, st.tracker, st.mapper)
+            _track_sequence(config, dataset, run_dir, st, stop, progress, observer)
             _finish_sequence(config, st)
             metrics = _write_outputs(config, dataset, run_dir, st)
         info = read_json(run_dir / RUN_INFO_FILE)
         info.update(status="finished", finished=datetime.now(timezone.utc).isoformat(timespec="seconds"))
         write_json(run_dir / RUN_INFO_FILE, info)
         log.info("finished: %s", metrics.get("trajectory", {}))
+        if observer is not None:
+            try:
+                observer.finished(run_dir)
+            except Exception as e:  # noqa: BLE001 - the run's outputs are written; a viewer's failure is not the run's
+                log.warning("the observer could not show the finished run: %s", e)
         return metrics
     except BaseException as e:
         _save_stopped_run(dataset, run_dir, st, e)
@@ -299,7 +307,7 @@ def _restore_or_start(config: Config, dataset: RGBDDataset, run_dir: Path, ckpt:
 
 
 def _track_sequence(config: Config, dataset: RGBDDataset, run_dir: Path, st: _RunState, stop: _StopRequests,
-                    progress: bool | None) -> None:
+                    progress: bool | None, observer=None) -> None:
     """Track every frame from ``st.start`` (training the map on the keyframes), skipping bad frames."""
     every = config.mapping.checkpoint_every
     max_bad = int(config.dataset.max_bad_frames * st.n)
@@ -328,6 +336,8 @@ def _track_sequence(config: Config, dataset: RGBDDataset, run_dir: Path, st: _Ru
             ms = 1000 * (time.perf_counter() - t0)
             st.lines.append(f"{frame.index} {frame.timestamp:.6f} {res.state.value} {int(res.keyframe)} "
                             f"{res.matches} {res.fitness:.4f} {ms:.1f}")
+            if observer is not None:
+                observer.frame(frame, res)
             if res.keyframe and st.worker is not None:
                 with st.timer("mapping"):  # sequential mode: training; concurrent: storing the images
                     st.worker.submit(res.keyframe_id, frame.index, frame.rgb, frame.depth,

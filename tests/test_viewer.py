@@ -143,6 +143,71 @@ def test_taken_port_is_one_clear_line(run_dir):
             check_port("127.0.0.1", port)
 
 
+def test_frame_slider_shows_the_render_and_the_input_there(run_dir, layers):
+    """Moving to a frame renders the map at its estimated pose beside that frame's input image."""
+    from ggfslam.viewer.app import serve_run
+
+    server, scene = serve_run(run_dir, port=0)
+    try:
+        row = 7
+        scene.show_frame(row)
+        shown = scene._frame_images[0].image
+        assert np.array_equal(shown, scene.frames.render(row))
+        image, caption = scene.frames.input_image(row)
+        assert np.array_equal(scene._frame_images[1].image, image) and caption == f"input frame {row}"
+        err = layers.trajectories.error_m[row]
+        assert f"position error {100 * err:.2f} cm" in scene.frame_caption.content
+        # the render is the map at that pose: close to the input image there (a short run: a rough map)
+        from ggfslam.eval.image import psnr
+
+        assert psnr(shown.astype(np.float32) / 255, image.astype(np.float32) / 255) > 15.0
+    finally:
+        server.stop()
+
+
+def test_live_viewer_follows_a_run_and_a_plain_run_imports_none_of_it(tmp_path):
+    """With an observer the viewer draws poses and the map while frames are tracked, then the finished folder;
+    without one, no module of the viewer (or viser) is imported."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, json\n"
+        "from ggfslam import slam\n"
+        "from ggfslam.config import config_from_dict\n"
+        "cfg = config_from_dict({'name': 'plain', 'dataset': {'kind': 'synthetic', 'synthetic': {'n_frames': 6,"
+        " 'width': 160, 'height': 120}}, 'mapping': {'enabled': False}}, 'test')\n"
+        f"slam.run(cfg, {str(tmp_path / 'plain')!r}, progress=False)\n"
+        "print(json.dumps(sorted(m for m in sys.modules if m.startswith(('viser', 'ggfslam.viewer')))))\n")
+    env = {**os.environ, "GGFSLAM_CACHE": str(tmp_path / "cache")}
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=600)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert json.loads(res.stdout.strip().splitlines()[-1]) == []
+
+    from ggfslam import slam
+    from ggfslam.config import config_from_dict
+    from ggfslam.viewer.live import LiveViewer
+
+    mp = pytest.MonkeyPatch()
+    mp.setenv("GGFSLAM_CACHE", str(tmp_path / "cache"))
+    cfg = config_from_dict({"name": "live", "dataset": {"kind": "synthetic", "synthetic": {
+        "n_frames": 16, "width": 160, "height": 120}}, "tracking": {"keyframe_max_frames": 4},
+        "mapping": {"iterations_per_keyframe": 60, "final_iterations": 20, "eval_stride": 8}}, "test")
+    viewer = LiveViewer("127.0.0.1", 0, pose_period=0.2, map_period=0.5, map_share=1.0)
+    try:
+        slam.run(cfg, tmp_path / "live", progress=False, observer=viewer)
+        assert viewer.updates["poses"] >= 2 and viewer.updates["maps"] >= 1, viewer.updates
+        st = viewer.status()
+        # the finished folder, every layer, a frustum per keyframe, the slider over every frame
+        assert st["run_dir"] == str(tmp_path / "live") and st["problems"] == {}
+        assert st["layers"] == ["splats", "mesh", "trajectories", "keyframes", "graph"]
+        assert st["frustums"] == st["keyframes"] and len(st["keyframes"]) >= 3 and st["frustums_visible"]
+        assert st["frames"] == 16 and st["slider_max"] == 15
+    finally:
+        viewer.close()
+        mp.undo()
+
+
 def _canvas_pixels(png: bytes) -> np.ndarray:
     """The screenshot as float RGB [H, W, 3] in [0, 1], cut left of the GUI panel."""
     import cv2

@@ -39,9 +39,8 @@ def start_server(host: str, port: int):
         return viser.ViserServer(host=host, port=port, verbose=False)
 
 
-def viewer_address(server, host: str) -> str:
+def viewer_address(port: int, host: str) -> str:
     """The address to open, with the SSH forwarding hint for a localhost-bound server."""
-    port = server.get_port()
     shown = "localhost" if host in ("127.0.0.1", "localhost", "::1") else host
     url = f"http://{shown}:{port}"
     if shown == "localhost":

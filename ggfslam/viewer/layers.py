@@ -173,21 +173,29 @@ def load_mesh(run_dir: Path) -> Mesh:
 def load_trajectories(run_dir: Path, max_diff: float) -> Trajectories:
     """trajectory.txt, and groundtruth.txt brought into the estimate's frame; per-frame error after alignment."""
     from ggfslam.data.trajectory_io import read_tum_trajectory
+
+    stamps, est = read_tum_trajectory(_need(run_dir / TRAJECTORY_FILE, "the run did not finish"))
+    if not (run_dir / GROUNDTRUTH_FILE).is_file():
+        return align_trajectories(stamps, est, None, None, max_diff)
+    return align_trajectories(stamps, est, *read_tum_trajectory(run_dir / GROUNDTRUTH_FILE), max_diff)
+
+
+def align_trajectories(stamps: np.ndarray, est: np.ndarray, gt_stamps: np.ndarray | None, gt: np.ndarray | None,
+                       max_diff: float) -> Trajectories:
+    """The estimate [N, 4, 4] with the ground truth [M, 4, 4] (None: none) moved into its frame by the inverse of
+    the ATE's alignment, and each frame's translation error there."""
     from ggfslam.eval.trajectory import ATE
     from ggfslam.geometry.se3 import invert
 
-    stamps, est = read_tum_trajectory(_need(run_dir / TRAJECTORY_FILE, "the run did not finish"))
     err = np.full(len(est), np.nan)
-    if not (run_dir / GROUNDTRUTH_FILE).is_file():
+    if gt is None:
         return Trajectories(stamps, est, None, err)
-    gt_stamps, gt = read_tum_trajectory(run_dir / GROUNDTRUTH_FILE)
     ate = ATE(max_diff)
     try:
         ate.process_data((stamps, est, gt_stamps, gt))
     except ValueError as e:  # too few pairs, a degenerate estimate
         raise LayerError(f"{GROUNDTRUTH_FILE}: cannot align the ground truth to the estimate ({e})") from None
-    A_inv = invert(ate.alignment)  # the ATE maps the estimate onto the ground truth; we map the ground truth back
-    gt_in_map = A_inv[None] @ gt  # [M, 4, 4]
+    gt_in_map = invert(ate.alignment)[None] @ gt  # [M, 4, 4]: the ATE maps the estimate onto the ground truth
     j = np.clip(np.searchsorted(gt_stamps, stamps), 1, len(gt_stamps) - 1)
     j = np.where(np.abs(gt_stamps[j - 1] - stamps) < np.abs(gt_stamps[j] - stamps), j - 1, j)  # nearest [N]
     close = np.abs(gt_stamps[j] - stamps) <= max_diff
@@ -195,8 +203,12 @@ def load_trajectories(run_dir: Path, max_diff: float) -> Trajectories:
     return Trajectories(stamps, est, gt_in_map, err, ate.get_statistic("rmse"))
 
 
-def _thumbnail(rgb: np.ndarray, width: int = THUMB_WIDTH) -> np.ndarray:
+def thumbnail(rgb: np.ndarray, width: int = THUMB_WIDTH) -> np.ndarray:
+    """A colour image resized to ``width`` pixels (aspect kept), as uint8 [h, w, 3] (float images in [0, 1])."""
     import cv2
+
+    if rgb.dtype != np.uint8:
+        rgb = (np.clip(rgb, 0, 1) * 255).round().astype(np.uint8)
 
     h, w = rgb.shape[:2]
     return cv2.resize(rgb, (width, max(1, round(h * width / w))), interpolation=cv2.INTER_AREA)
@@ -236,7 +248,7 @@ def load_keyframes(run_dir: Path, graph: dict | None) -> Keyframes:
     for f in frames:
         if int(f) in files:
             with np.load(files[int(f)]) as z:
-                images.append(_thumbnail(z["rgb"]))
+                images.append(thumbnail(z["rgb"]))
         else:
             images.append(None)
     return Keyframes(ids, frames, poses, 2 * np.arctan(cam.height / (2 * cam.fy)), cam.width / cam.height, images)

@@ -95,6 +95,7 @@ class RunScene:
         self.slider = None
         self._frame_images = None
         self._nodes: dict[str, list] = {}  # checkbox name -> its scene handles
+        self._frustums: dict[int, object] = {}  # keyframe id -> its frustum handle
         self.initial_pose: np.ndarray | None = None  # [4, 4] T_wc of the view a new browser starts from
         server.scene.on_click()(self._clicked)
 
@@ -113,7 +114,7 @@ class RunScene:
             self.draw_keyframes(L.keyframes)
         if L.graph is not None:
             self.draw_graph(L.graph)
-        if self.frames is not None and L.trajectories is not None:
+        if self.frames is not None and L.trajectories is not None and self.slider is None:
             self.add_frame_slider(len(L.trajectories.est))
         self.write_summary()
 
@@ -197,15 +198,23 @@ class RunScene:
                                                             thickness=2, thickness_units="screen")])
 
     def draw_keyframes(self, k: Keyframes) -> None:
+        """Frustums with their images: new keyframes are added, known ones only moved (their image is sent once)."""
         scale = self.frustum_scale
-        handles = []
-        for i, (kf, T) in enumerate(zip(k.ids, k.poses)):
-            img = k.images[i] if i < len(k.images) else None
-            handles.append(self.server.scene.add_camera_frustum(
-                f"/keyframes/kf_{int(kf):06d}", fov=k.fov_y, aspect=k.aspect, scale=scale, image=img,
-                color=(230, 120, 20), thickness=2, thickness_units="screen", format="jpeg",
-                wxyz=rotation_wxyz(T[:3, :3]), position=T[:3, 3]))
-        self._set("keyframes", handles)
+        with self._lock:
+            for i, (kf, T) in enumerate(zip(k.ids, k.poses)):
+                wxyz, pos = rotation_wxyz(T[:3, :3]), T[:3, 3]
+                h = self._frustums.get(int(kf))
+                if h is not None:
+                    h.wxyz, h.position = wxyz, pos
+                    continue
+                img = k.images[i] if i < len(k.images) else None
+                self._frustums[int(kf)] = self.server.scene.add_camera_frustum(
+                    f"/keyframes/kf_{int(kf):06d}", fov=k.fov_y, aspect=k.aspect, scale=scale, image=img,
+                    color=(230, 120, 20), thickness=2, thickness_units="screen", format="jpeg", wxyz=wxyz,
+                    position=pos)
+            for kf in set(self._frustums) - {int(i) for i in k.ids}:  # culled keyframes
+                self._frustums.pop(kf).remove()
+            self._set("keyframes", list(self._frustums.values()))
 
     def draw_graph(self, g: Graph) -> None:
         sc = self.server.scene
