@@ -125,12 +125,13 @@ def _need(path: Path, what: str) -> Path:
 
 def covariances(quats_wxyz: np.ndarray, scales: np.ndarray) -> np.ndarray:
     """World covariances R diag(s^2) R^T [N, 3, 3] of unit quaternions [N, 4] (w, x, y, z) and scales [N, 3]."""
-    w, x, y, z = quats_wxyz.T.astype(np.float64)
-    R = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-                  2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-                  2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1).reshape(-1, 3, 3)
-    RS = R * scales.astype(np.float64)[:, None, :]  # [N, 3, 3]
-    return (RS @ RS.transpose(0, 2, 1)).astype(np.float32)
+    import torch
+
+    from ggfslam.render.projection import quat_to_rotmat
+
+    R = quat_to_rotmat(torch.as_tensor(quats_wxyz, dtype=torch.float32))  # [N, 3, 3]
+    RS = R * torch.as_tensor(scales, dtype=torch.float32)[:, None, :]
+    return (RS @ RS.transpose(1, 2)).numpy()
 
 
 def load_splats(run_dir: Path, max_splats: int) -> Splats:
