@@ -291,3 +291,40 @@ def _wait_for(page, ok, timeout: float) -> bytes:
         if ok(_canvas_pixels(shot)) or time.time() > end:
             return shot
         time.sleep(1.0)
+
+
+def test_run_view_serves_live_then_the_folder_until_ctrl_c(tmp_path):
+    """``ggfslam run --view``: one address line first, the run's table, then it keeps serving the finished folder
+    until Ctrl-C, which ends it with status 0 and leaves a complete run folder."""
+    import signal
+    import subprocess
+    import sys
+    import urllib.request
+
+    config = Path(__file__).parents[1] / "configs" / "synthetic" / "default.yaml"
+    cmd = [sys.executable, "-m", "ggfslam.cli", "run", str(config), "--out", str(tmp_path / "run"), "--view",
+           "--port", "0", "--no-progress", "--set", "dataset.synthetic.n_frames=10",
+           "--set", "dataset.synthetic.width=160", "--set", "dataset.synthetic.height=120",
+           "--set", "mapping.iterations_per_keyframe=10", "--set", "mapping.final_iterations=10"]
+    env = {**os.environ, "GGFSLAM_CACHE": str(tmp_path / "cache"), "COLUMNS": "200"}
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    lines = []
+    try:
+        for line in proc.stdout:
+            lines.append(line)
+            if line.startswith("live viewer: http://localhost:"):
+                port = int(line.split("localhost:")[1].split()[0])
+                with urllib.request.urlopen(f"http://127.0.0.1:{port}", timeout=30) as page:  # the page is served
+                    assert page.status == 200 and b"<html" in page.read(2000).lower()
+            if "the viewer shows its folder until Ctrl-C" in line:
+                break
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    text = "".join(lines) + out
+    assert proc.returncode == 0, text[-3000:]
+    assert lines[0].startswith("live viewer: http://localhost:") and "viewer stopped" in out
+    assert json.loads((tmp_path / "run" / "run.json").read_text())["status"] == "finished"
+    assert (tmp_path / "run" / "gaussians.ply").is_file() and (tmp_path / "run" / "metrics.json").is_file()
