@@ -138,7 +138,7 @@ def load_splats(run_dir: Path, max_splats: int) -> Splats:
     """gaussians.ply (and gaussians_planarity.ply's colours when present), the most opaque ``max_splats``."""
     from ggfslam.gaussians.ply import read_gaussians_ply
 
-    path = _need(run_dir / GAUSSIANS_FILE, "the run wrote no map: it did not finish or ran without mapping")
+    path = _need(run_dir / GAUSSIANS_FILE, "the run wrote no map: it did not finish or ran with mapping.enabled: false")
     try:
         g = read_gaussians_ply(path)
     except DatasetError as e:
@@ -163,7 +163,8 @@ def load_mesh(run_dir: Path) -> Mesh:
     """mesh.ply (the TSDF mesh fused from the baked map)."""
     import open3d as o3d
 
-    path = _need(run_dir / MESH_FILE, "the run wrote no mesh: it did not finish or ran without mapping")
+    path = _need(run_dir / MESH_FILE, "the run wrote no mesh: it did not finish, or ran with mapping.enabled: false or "
+                 "mapping.mesh: false")
     m = o3d.io.read_triangle_mesh(str(path))
     if len(m.triangles) == 0:
         raise LayerError(f"{path}: no triangles")
@@ -239,7 +240,8 @@ def load_keyframes(run_dir: Path, graph: dict | None) -> Keyframes:
         frames = np.array([k["frame_index"] for k in kfs], np.int64)
         poses = np.array([k["T_wc"] for k in kfs], np.float64).reshape(-1, 4, 4)
     else:
-        _, poses = read_tum_trajectory(_need(run_dir / KEYFRAMES_FILE, "keyframe poses"))
+        _, poses = read_tum_trajectory(_need(run_dir / KEYFRAMES_FILE, "keyframe poses; the odometry baseline has "
+                                             "no keyframes"))
         ids = np.arange(len(poses))
         frames = np.array(sorted(keyframe_images(run_dir)), np.int64)
         if len(frames) != len(poses):
@@ -259,7 +261,8 @@ def read_graph(run_dir: Path) -> dict:
     """graph.json as written by the run."""
     import json
 
-    path = _need(run_dir / GRAPH_FILE, "the factor graph: the run did not finish")
+    path = _need(run_dir / GRAPH_FILE, "the factor graph, written when a run of the ORB system finishes; the "
+                 "odometry baseline has none")
     try:
         data = json.loads(path.read_text())
     except (OSError, ValueError) as e:

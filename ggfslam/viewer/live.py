@@ -28,7 +28,8 @@ log = logging.getLogger("ggfslam.viewer")
 
 
 class LiveViewer:
-    """A viser server in its own process, fed by a running ``slam.run`` (pass it as ``observer``)."""
+    """A viser server in its own process, fed by a running ``slam.run`` (pass it as ``observer``). The process is
+    spawned, so a script that creates one needs the usual ``if __name__ == "__main__":`` guard."""
 
     def __init__(self, host: str, port: int, pose_period: float = 1.0, map_period: float = 5.0,
                  map_share: float = 0.1):
@@ -44,7 +45,12 @@ class LiveViewer:
         if not self._conn.poll(120):
             self._proc.kill()
             raise ViewerError("the viewer's process did not start within 120 s")
-        kind, value = self._conn.recv()
+        try:
+            kind, value = self._conn.recv()
+        except EOFError:
+            raise ViewerError("the viewer's process ended at start (its error is above); from a script, create "
+                              "the LiveViewer under `if __name__ == \"__main__\":`, as for any spawned "
+                              "process") from None
         if kind == "error":
             raise ViewerError(value)
         self.port = int(value)
