@@ -1,0 +1,72 @@
+"""Frames delivered on their own clock: the newest-wins queue, and a replay's timing and dropping at a high rate."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from ggfslam.data.tum import TUMDataset
+from ggfslam.sources.replay import Arrival, LatestFrames, ReplaySource
+
+N = 60  # frames at 30 Hz: 2 s of sequence
+
+
+def test_latest_frames_drops_the_oldest_when_full():
+    q = LatestFrames(2)
+    for i in range(5):
+        q.put(Arrival(i, 0.0, 0.0))
+    assert q.dropped == [0, 1, 2]
+    assert [q.get().index, q.get().index] == [3, 4]
+    assert q.get(timeout=0.01) is None  # empty, still open: nothing within the timeout
+    q.close()
+    assert q.get() is None
+    with pytest.raises(ValueError):
+        LatestFrames(0)
+
+
+def test_a_consumer_that_keeps_up_gets_every_frame_on_time(make_tum):
+    ds = TUMDataset(make_tum(N))
+    rate = 2.0  # 60 Hz
+    src = ReplaySource(ds, rate).start()
+    got = list(src)
+    assert [a.index for a in got] == list(range(N)) and src.stats.dropped == []
+    assert src.stats.received == N
+    np.testing.assert_array_equal(got[7].frame.rgb, ds[7].rgb)
+    # paced by the timestamps: the replay lasts (t_last - t_0) / rate, each frame delivered when due
+    stamps = np.asarray(ds.timestamps)
+    span = got[-1].arrived - got[0].arrived
+    assert span == pytest.approx((stamps[-1] - stamps[0]) / rate, abs=0.05)
+    late = np.array(src.stats.late_ms)
+    assert np.median(late) < 5.0 and np.percentile(late, 90) < 20.0, late
+    for a in got[1:]:
+        assert a.arrived >= a.due - 1e-3  # never early (a timer may wake a hair before its deadline)
+
+
+def test_a_busy_consumer_sees_the_newest_frames_and_the_rest_are_counted_dropped(make_tum):
+    ds = TUMDataset(make_tum(N))
+    src = ReplaySource(ds, rate=4.0, capacity=1).start()  # 120 Hz, a queue of one
+    seen = []
+    for a in src:
+        seen.append(a.index)
+        time.sleep(0.025)  # a 40 Hz system
+    assert src.stats.received == N
+    assert sorted(seen + src.stats.dropped) == list(range(N))  # each frame processed or dropped, once
+    assert seen == sorted(seen) and seen[-1] == N - 1  # in order, and the newest frame is never lost
+    # 0.5 s of input at 40 Hz: about 20 taken
+    assert 12 <= len(seen) <= 30, seen
+
+
+def test_stopping_ends_the_input_and_an_unreadable_frame_arrives_as_its_error(make_tum):
+    root = make_tum(N)
+    (root / "rgb" / "100.000000.png").write_bytes(b"not a png at all")
+    src = ReplaySource(TUMDataset(root), rate=1.0).start()
+    first = src.queue.get(timeout=5)
+    assert first.index == 0 and first.frame is None and "cannot decode" in str(first.error)
+    time.sleep(0.2)
+    src.stop()
+    rest = list(src)
+    assert src.stats.received < N // 2  # stopped after about 0.2 s of a 2 s sequence
+    assert all(a.index < N // 2 for a in rest)
+    with pytest.raises(ValueError, match="rate"):
+        ReplaySource(TUMDataset(root), rate=0.0)
