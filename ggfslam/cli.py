@@ -1,4 +1,4 @@
-"""Command line: ``ggfslam run | demo | eval | render | view | synth | bench | calibrate-depth | config-help``."""
+"""Command line: ``ggfslam run | live | demo | eval | render | view | synth | bench | calibrate-depth | config-help``."""
 from __future__ import annotations
 
 import contextlib
@@ -101,6 +101,46 @@ def run(
     with _live_viewer(view, host, port) as viewer:
         metrics = slam.run(cfg, out, overwrite=overwrite, progress=not no_progress, resume=resume, observer=viewer)
         _print_result(metrics, out, f"{cfg.name}: {metrics['sequence']['dataset']}")
+
+
+@app.command()
+@user_errors
+def live(
+    config: Optional[Path] = typer.Argument(None, help="YAML config file (default: the built-in settings)."),
+    source: str = typer.Option(..., "--source", help="'replay' (the config's sequence) or 'replay:PATH' (any "
+                               "dataset folder ggfslam reads), delivered at its timestamps' pace."),
+    out: Path = typer.Option(..., "--out", "-o", help="Run directory to create."),
+    rate: float = typer.Option(1.0, help="Replay speed: 1.0 = the timestamps' own pace, 0.25 = four times slower."),
+    queue: int = typer.Option(2, help="Frames waiting for the system at most (1 or 2); older ones are dropped."),
+    set_: list[str] = typer.Option([], "--set", help="Override a config value (repeatable)."),
+    overwrite: bool = typer.Option(False, help="Replace an existing run directory made by ggfslam."),
+    no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bar."),
+    view: bool = typer.Option(False, "--view", help="Serve the web viewer, updated live."),
+    port: int = typer.Option(8080, help="--view: port to serve on (0: any free one)."),
+    host: str = typer.Option("127.0.0.1", help="--view: address to bind (default: this machine only)."),
+):
+    """Run on frames delivered live: a replay on time, dropping what arrives while the system is busy. Ctrl-C
+    ends the input and the run finishes (outputs written, exit status 0); a second Ctrl-C stops at once."""
+    from ggfslam.config import apply_overrides, config_from_dict, load_config
+
+    kind, _, path = source.partition(":")
+    if kind != "replay" or (_ and not path):
+        raise typer.BadParameter(f"{source!r}: expected 'replay' or 'replay:PATH'", param_hint="--source")
+    if queue not in (1, 2):
+        raise typer.BadParameter(f"{queue}: a queue of 1 or 2 frames", param_hint="--queue")
+    # mapping trains beside tracking (a sequential mapper would stall the input at every keyframe)
+    pre = ["mapping.concurrent=true"] + ([f"dataset.path={path}"] if path else [])
+    if path:
+        pre.append("dataset.kind=auto")
+    cfg = (load_config(config, pre + set_) if config is not None
+           else config_from_dict(apply_overrides({"name": "live"}, pre + set_), "live"))
+    from ggfslam import slam
+    from ggfslam.sources.replay import ReplaySource
+
+    with _live_viewer(view, host, port) as viewer:
+        metrics = slam.run(cfg, out, overwrite=overwrite, progress=not no_progress, observer=viewer,
+                           live=lambda ds: ReplaySource(ds, rate, queue))
+        _print_result(metrics, out, f"{cfg.name} (live): {metrics['live']['source']}")
 
 
 @app.command()

@@ -150,6 +150,8 @@ class _RunState:
     lines: list[str] = field(default_factory=lambda: ["# index timestamp state keyframe matches fitness ms"])
     rss: list = field(default_factory=list)  # (frames done, MiB): memory against length
     skipped: list[dict] = field(default_factory=list)  # bad frames passed over: {"index", "error"}
+    dropped: list[int] = field(default_factory=list)  # live input: frames that arrived while the system was busy
+    live: dict | None = None  # live input: latency_ms per processed frame, received, stopped_by
     start: int = 0  # first frame this invocation tracks
     frame: int = 0  # the frame being processed
     consistent: int | None = None  # frames [0, consistent) are done and the state is whole (None: mid-update)
@@ -158,7 +160,7 @@ class _RunState:
 
     def frame_indices(self, n_poses: int) -> np.ndarray:
         """Frame indices [n_poses] of the tracker's poses (every frame but the skipped ones, in order)."""
-        bad = {s["index"] for s in self.skipped}
+        bad = {s["index"] for s in self.skipped} | set(self.dropped)
         return np.array([i for i in range(self.n) if i not in bad][:n_poses], dtype=np.int64)
 
     def checkpoint(self, run_dir: Path, next_frame: int, finished: bool = False) -> None:
@@ -200,25 +202,34 @@ class _StopRequests:
 
 
 def run(config: Config, out_dir: str | Path, overwrite: bool = False, progress: bool | None = None,
-        resume: bool = False, observer=None) -> dict:
+        resume: bool = False, observer=None, live=None) -> dict:
     """Run the system on the configured sequence, write the run directory and return its metrics.
 
     With ``resume``, ``out_dir`` must be an unfinished run; it continues from its checkpoint (from the first frame
     when it stopped before writing one). A run that stops early (an error, Ctrl-C, SIGTERM) first saves what it
     has (``_save_stopped_run``). ``observer`` (e.g. ``viewer.live.LiveViewer``) is told ``started(config, dataset,
-    run_dir, tracker, mapper)``, ``frame(frame, result)`` after each tracked frame and ``finished(run_dir)``."""
+    run_dir, tracker, mapper)``, ``frame(frame, result)`` after each tracked frame and ``finished(run_dir)``.
+    ``live(dataset)`` makes a live source of the dataset (``sources.replay.ReplaySource``): frames then arrive on
+    its clock, those arriving while the system is busy are dropped, and a stop request ends the input, after
+    which the run finishes and writes every output (metrics.json ``live``)."""
     setup_runtime(config)
     dataset = open_dataset_from_config(config.dataset)  # fails on bad input before the run folder is touched
+    if live is not None and resume:
+        raise RunDirError(f"{out_dir}: a live run cannot be resumed (its input is gone); start a new one")
     run_dir, ckpt = _open_run_dir(config, out_dir, overwrite, resume)
     handler = _attach_log(run_dir)
     st = _RunState(len(dataset))
+    source = None
+    if live is not None:
+        source = live(dataset)
+        st.live = {"latency_ms": [], "received": 0, "stopped_by": None, "source": source.describe()}
     try:
         with _StopRequests() as stop:
             log.info("run %s on %s", config.name, dataset.describe())
             _restore_or_start(config, dataset, run_dir, ckpt, st)
             if observer is not None:
                 observer.started(config, dataset, run_dir, st.tracker, st.mapper)
-            _track_sequence(config, dataset, run_dir, st, stop, progress, observer)
+            _track_sequence(config, dataset, run_dir, st, stop, progress, observer, source)
             _finish_sequence(config, st)
             metrics = _write_outputs(config, dataset, run_dir, st)
         info = read_json(run_dir / RUN_INFO_FILE)
@@ -306,34 +317,59 @@ def _restore_or_start(config: Config, dataset: RGBDDataset, run_dir: Path, ckpt:
     st.consistent = st.start
 
 
+def _dataset_frames(dataset: RGBDDataset, st: _RunState):
+    """Arrivals of a run read from disk, one after the other from ``st.start`` (no clock, nothing dropped)."""
+    from ggfslam.sources.replay import Arrival
+
+    for i in range(st.start, st.n):
+        try:
+            with st.timer("load"):
+                frame = dataset[i]
+        except DatasetError as e:
+            yield Arrival(i, 0.0, 0.0, error=e)
+            continue
+        yield Arrival(i, 0.0, 0.0, frame=frame)
+
+
 def _track_sequence(config: Config, dataset: RGBDDataset, run_dir: Path, st: _RunState, stop: _StopRequests,
-                    progress: bool | None, observer=None) -> None:
-    """Track every frame from ``st.start`` (training the map on the keyframes), skipping bad frames."""
+                    progress: bool | None, observer=None, source=None) -> None:
+    """Track every frame from ``st.start`` (training the map on the keyframes), skipping bad frames; with a live
+    ``source`` (``sources.replay.ReplaySource``), the frames it delivers, until it ends or a stop is requested
+    (which ends the input: the run then finishes as usual)."""
     every = config.mapping.checkpoint_every
     max_bad = int(config.dataset.max_bad_frames * st.n)
     show = config.runtime.progress if progress is None else progress
     t_start = time.perf_counter()
     stop.tracking = True
+    arrivals = _dataset_frames(dataset, st) if source is None else iter(source.start())
     with _progress(show and sys.stderr.isatty()) as bar:
         task = bar.add_task("tracking", total=st.n, completed=st.start, fps=0.0)
-        for i in range(st.start, st.n):
+        for a in arrivals:
+            i = a.index
             st.frame, st.consistent = i, i
             if stop.requested:
-                raise KeyboardInterrupt(f"{stop.requested} at frame {i}")
-            try:
-                with st.timer("load"):
-                    frame = dataset[i]
-            except DatasetError as e:
+                if source is None:
+                    raise KeyboardInterrupt(f"{stop.requested} at frame {i}")
+                if not st.live.get("stopped_by"):  # a second one stops at once (_StopRequests)
+                    log.warning("%s: the input ends at frame %d; finishing the run", stop.requested, i)
+                    st.live["stopped_by"] = stop.requested
+                    source.stop()
+            if source is not None:
+                _note_dropped(dataset, st, source, bar, task)
+            if a.error is not None:
                 if config.dataset.on_bad_frame == "error":
-                    raise
-                _skip_frame(dataset, st, i, e, max_bad)
+                    raise a.error
+                _skip_frame(dataset, st, i, a.error, max_bad)
                 bar.update(task, advance=1)
                 continue
+            frame = a.frame
             st.consistent = None
             t0 = time.perf_counter()
             with st.timer("tracking"):
                 res = st.tracker.track(frame)
             ms = 1000 * (time.perf_counter() - t0)
+            if source is not None:
+                st.live["latency_ms"].append(1000 * (time.perf_counter() - a.arrived))
             st.lines.append(f"{frame.index} {frame.timestamp:.6f} {res.state.value} {int(res.keyframe)} "
                             f"{res.matches} {res.fitness:.4f} {ms:.1f}")
             if observer is not None:
@@ -348,9 +384,21 @@ def _track_sequence(config: Config, dataset: RGBDDataset, run_dir: Path, st: _Ru
                 release_free_memory()  # the sample shows what the run holds, not glibc's cache of freed pages
                 st.rss.append((i + 1, round(current_rss_mb(), 1)))
             bar.update(task, advance=1, fps=st.timer.fps("tracking"))
+    if source is not None:
+        source.stop()
+        _note_dropped(dataset, st, source, bar, task)
+        st.live["received"] = source.stats.received
     stop.tracking = False
     st.frame = st.consistent = st.n
     st.wall += time.perf_counter() - t_start
+
+
+def _note_dropped(dataset: RGBDDataset, st: _RunState, source, bar, task) -> None:
+    """Rows for the frames the live source dropped since the last call (they get no pose)."""
+    for i in source.stats.dropped[len(st.dropped):]:
+        st.dropped.append(int(i))
+        st.lines.append(f"{i} {float(dataset.timestamps[i]):.6f} dropped 0 0 0.0000 0.0")
+        bar.update(task, advance=1)
 
 
 def _skip_frame(dataset: RGBDDataset, st: _RunState, i: int, e: DatasetError, max_bad: int) -> None:
@@ -415,6 +463,8 @@ def _write_outputs(config: Config, dataset: RGBDDataset, run_dir: Path, st: _Run
                      "frames_skipped": len(st.skipped), "skipped": st.skipped, "fps": timer.fps("tracking")},
         "backend": tracker.summary(),
     }
+    if st.live is not None:
+        metrics["live"] = _live_metrics(st)
     if gt is not None:
         metrics["trajectory"] = _trajectory_metrics(stamps_a, poses_a, dataset.timestamps, gt, config)
     if mapper is not None:
@@ -425,6 +475,17 @@ def _write_outputs(config: Config, dataset: RGBDDataset, run_dir: Path, st: _Run
                          "stages": timer.summary()}
     write_json(run_dir / METRICS_FILE, metrics)
     return metrics
+
+
+def _live_metrics(st: _RunState) -> dict:
+    """metrics.json ``live``: what arrived, what was processed and dropped, arrival-to-pose latency."""
+    lat = np.asarray(st.live["latency_ms"], np.float64)
+    processed = len(lat)
+    return {"source": st.live["source"], "frames_received": st.live["received"], "frames_processed": processed,
+            "frames_dropped": len(st.dropped), "frames_skipped": len(st.skipped),
+            "latency_ms_p50": float(np.percentile(lat, 50)) if processed else None,
+            "latency_ms_p95": float(np.percentile(lat, 95)) if processed else None,
+            "tracking_fps": st.timer.fps("tracking"), "stopped_by": st.live["stopped_by"]}
 
 
 def _save_stopped_run(dataset: RGBDDataset, run_dir: Path, st: _RunState, e: BaseException) -> None:

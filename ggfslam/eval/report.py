@@ -18,6 +18,12 @@ ROWS = [
     ("tracking", "frames", "frames", "{:d}"),
     ("tracking", "frames_lost", "frames lost", "{:d}"),
     ("tracking", "fps", "tracking [frames/s]", "{:.1f}"),
+    ("live", "frames_received", "live: frames received", "{:d}"),
+    ("live", "frames_processed", "live: frames processed", "{:d}"),
+    ("live", "frames_dropped", "live: frames dropped (arrived while busy)", "{:d}"),
+    ("live", "latency_ms_p50", "live: arrival to pose p50 [ms]", "{:.0f}"),
+    ("live", "latency_ms_p95", "live: arrival to pose p95 [ms]", "{:.0f}"),
+    ("live", "stopped_by", "live: input ended by", "{}"),
     ("rendering", "psnr", "PSNR [dB] at {res}", "{:.2f}"),
     ("rendering", "ssim", "SSIM at {res}", "{:.3f}"),
     ("rendering", "lpips", "LPIPS", "{}"),
@@ -63,8 +69,10 @@ def metrics_table(metrics: dict, title: str = "ggfslam metrics") -> Table:
     if "train_width" in mp:
         rows.insert(next(i for i, row in enumerate(rows) if row[1] == "iterations"),
                     ("mapping", "train_width", "training resolution", "train"))
+    if "live" in metrics:  # a live run has poses for the frames it processed only
+        rows[0] = ("trajectory", "ate_rmse_cm", "ATE RMSE [cm] (frames processed)", "{:.2f}")
     for section, key, label, fmt in rows:
-        if key in metrics.get(section, {}):
+        if metrics.get(section, {}).get(key) is not None:
             value = metrics[section][key]
             if fmt == "train":
                 value, fmt = f"{mp['train_width']}x{mp.get('train_height', '?')}", "{}"

@@ -83,6 +83,10 @@ class ReplaySource:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
+    def describe(self) -> str:
+        """One line naming the source, for metrics.json and logs."""
+        return f"replay of {self.dataset.describe()} at {self.rate:g}x, queue of {self.queue.capacity}"
+
     def start(self) -> ReplaySource:
         """Start delivering (frame 0 now, the others at their timestamps' offsets)."""
         self._thread = threading.Thread(target=self._drive, name="ggfslam-replay", daemon=True)
