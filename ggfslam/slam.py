@@ -159,7 +159,8 @@ class _RunState:
     wall: float = 0.0
 
     def frame_indices(self, n_poses: int) -> np.ndarray:
-        """Frame indices [n_poses] of the tracker's poses (every frame but the skipped ones, in order)."""
+        """Frame indices [n_poses] of the tracker's poses (every frame but the skipped and dropped ones, in
+        order)."""
         bad = {s["index"] for s in self.skipped} | set(self.dropped)
         return np.array([i for i in range(self.n) if i not in bad][:n_poses], dtype=np.int64)
 
@@ -227,6 +228,8 @@ def run(config: Config, out_dir: str | Path, overwrite: bool = False, progress: 
         with _StopRequests() as stop:
             log.info("run %s on %s", config.name, dataset.describe())
             _restore_or_start(config, dataset, run_dir, ckpt, st)
+            if source is not None:
+                write_json(run_dir / RUN_INFO_FILE, {**read_json(run_dir / RUN_INFO_FILE), "live": source.describe()})
             if observer is not None:
                 observer.started(config, dataset, run_dir, st.tracker, st.mapper)
             _track_sequence(config, dataset, run_dir, st, stop, progress, observer, source)
@@ -246,6 +249,8 @@ def run(config: Config, out_dir: str | Path, overwrite: bool = False, progress: 
         _save_stopped_run(dataset, run_dir, st, e)
         raise
     finally:
+        if source is not None:
+            source.stop()  # after an error the driver thread would read the rest of the sequence for nobody
         if st.worker is not None:
             st.worker.abort()  # no-op after finish(); after an error, no training goes on in the background
         log.removeHandler(handler)
@@ -260,8 +265,11 @@ def _open_run_dir(config: Config, out_dir: str | Path, overwrite: bool, resume: 
     if resume:
         run_dir = require_run_dir(out_dir)
         _check_resume_config(config, run_dir)
-        if read_json(run_dir / RUN_INFO_FILE).get("status") == "finished":
+        info = read_json(run_dir / RUN_INFO_FILE)
+        if info.get("status") == "finished":
             raise RunDirError(f"{run_dir}: the run finished; nothing to resume")
+        if info.get("live"):
+            raise RunDirError(f"{run_dir}: a live run cannot be resumed (its input is gone); start a new one")
         for leftover in [*run_dir.glob(".*.tmp-*"), *(run_dir / KEYFRAME_IMAGES_DIR).glob(".*.tmp-*")]:
             leftover.unlink()  # a write cut short by a kill (ggfslam.atomic): never a file of the run
         if (run_dir / CHECKPOINT_FILE).is_file():
@@ -317,11 +325,15 @@ def _restore_or_start(config: Config, dataset: RGBDDataset, run_dir: Path, ckpt:
     st.consistent = st.start
 
 
-def _dataset_frames(dataset: RGBDDataset, st: _RunState):
-    """Arrivals of a run read from disk, one after the other from ``st.start`` (no clock, nothing dropped)."""
+def _dataset_frames(dataset: RGBDDataset, st: _RunState, stop: _StopRequests):
+    """Arrivals of a run read from disk, one after the other from ``st.start`` (no clock, nothing dropped); a stop
+    request ends the run before the next frame is read (the frame being tracked is finished first)."""
     from ggfslam.sources.replay import Arrival
 
     for i in range(st.start, st.n):
+        st.frame, st.consistent = i, i
+        if stop.requested:
+            raise KeyboardInterrupt(f"{stop.requested} at frame {i}")
         try:
             with st.timer("load"):
                 frame = dataset[i]
@@ -341,15 +353,13 @@ def _track_sequence(config: Config, dataset: RGBDDataset, run_dir: Path, st: _Ru
     show = config.runtime.progress if progress is None else progress
     t_start = time.perf_counter()
     stop.tracking = True
-    arrivals = _dataset_frames(dataset, st) if source is None else iter(source.start())
+    arrivals = _dataset_frames(dataset, st, stop) if source is None else iter(source.start())
     with _progress(show and sys.stderr.isatty()) as bar:
         task = bar.add_task("tracking", total=st.n, completed=st.start, fps=0.0)
         for a in arrivals:
             i = a.index
             st.frame, st.consistent = i, i
-            if stop.requested:
-                if source is None:
-                    raise KeyboardInterrupt(f"{stop.requested} at frame {i}")
+            if stop.requested and source is not None:
                 if not st.live.get("stopped_by"):  # a second one stops at once (_StopRequests)
                     log.warning("%s: the input ends at frame %d; finishing the run", stop.requested, i)
                     st.live["stopped_by"] = stop.requested
