@@ -66,8 +66,7 @@ def _live_viewer(view: bool, host: str, port: int):
     console.print(f"live viewer: {viewer_address(viewer.port, host)}", highlight=False, soft_wrap=True)
     try:
         yield viewer
-        console.print("the run is finished; the viewer shows its folder until Ctrl-C")
-        _serve_until_interrupted()
+        _serve_until_interrupted("the run is finished; the viewer shows its folder until Ctrl-C")
     finally:
         viewer.close()
 
@@ -216,17 +215,17 @@ def view(
     server, scene = serve_run(run_dir, host=host, port=port, max_splats=max_splats)
     for layer, why in scene.layers.problems.items():
         err_console.print(f"[yellow]{layer}:[/yellow] {why}", highlight=False, soft_wrap=True)
-    console.print(f"viewer of {scene.layers.run_dir}: {viewer_address(server.get_port(), host)}", highlight=False,
-                  soft_wrap=True)
     try:
-        _serve_until_interrupted()
+        _serve_until_interrupted(f"viewer of {scene.layers.run_dir}: {viewer_address(server.get_port(), host)}")
     finally:
         server.stop()
 
 
-def _serve_until_interrupted() -> None:
-    """Block until Ctrl-C, which ends serving normally (exit status 0)."""
+def _serve_until_interrupted(message: str) -> None:
+    """Print ``message`` and block until Ctrl-C, which ends serving normally (exit status 0); the message is
+    printed inside, so a Ctrl-C answering it at once is caught too."""
     try:
+        console.print(message, highlight=False, soft_wrap=True)
         while True:
             time.sleep(3600)
     except KeyboardInterrupt:
