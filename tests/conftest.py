@@ -173,3 +173,19 @@ def sequence(tmp_path_factory):
                                                                           "height": 240}}}, "test")
     yield sources.open_dataset_from_config(cfg.dataset)
     mp.undo()
+
+
+def run_synthetic(tmp_path_factory, name: str, config: dict) -> Path:
+    """``slam.run`` of a config dict (a synthetic sequence) into a new temporary folder with its own sequence
+    cache; returns the run folder (``<tmp>/run``)."""
+    from ggfslam import slam
+    from ggfslam.config import config_from_dict
+
+    root = tmp_path_factory.mktemp(name)
+    mp = pytest.MonkeyPatch()
+    mp.setenv("GGFSLAM_CACHE", str(root / "cache"))
+    try:
+        slam.run(config_from_dict({"name": name, **config}, "test"), root / "run", progress=False)
+    finally:
+        mp.undo()
+    return root / "run"

@@ -8,31 +8,23 @@ import gtsam
 import numpy as np
 import pytest
 
-from ggfslam import slam
 from ggfslam.backend.export import FORMAT_VERSION, MIN_COVISIBILITY, graph_to_dict, load_graph_networkx
 from ggfslam.backend.graph import L, P, X, calibrations, observation_factor, whitened_chi2
 from ggfslam.backend.slam_map import KeyFrame, SlamMap
-from ggfslam.config import BackendConfig, TrackingConfig, config_from_dict
+from ggfslam.config import BackendConfig, TrackingConfig
 from ggfslam.data.types import Camera
 from ggfslam.frontend.features import Features
 from ggfslam.rundir import GRAPH_FILE
+from tests.conftest import run_synthetic
 
 
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory):
     """A 20-frame synthetic run (keyframe every 4 frames at most, noisy depth so errors are not all zero)."""
-    root = tmp_path_factory.mktemp("export")
-    mp = pytest.MonkeyPatch()
-    mp.setenv("GGFSLAM_CACHE", str(root / "cache"))
-    cfg = config_from_dict({
-        "name": "export", "dataset": {"kind": "synthetic", "synthetic": {
-            "n_frames": 20, "width": 320, "height": 240, "depth_noise": True}},
+    return run_synthetic(tmp_path_factory, "export", {
+        "dataset": {"kind": "synthetic", "synthetic": {"n_frames": 20, "width": 320, "height": 240,
+                                                      "depth_noise": True}},
         "tracking": {"keyframe_max_frames": 4}, "mapping": {"enabled": False}})
-    try:
-        slam.run(cfg, root / "run", progress=False)
-    finally:
-        mp.undo()
-    return root / "run"
 
 
 @pytest.fixture(scope="module")

@@ -17,6 +17,7 @@ from ggfslam.cli import app
 from ggfslam.errors import ViewerError
 from ggfslam.viewer.layers import covariances, load_run_layers
 from ggfslam.viewer.scene import Pickable, pick
+from tests.conftest import run_synthetic
 
 CHROMIUM = os.environ.get("GGFSLAM_CHROMIUM", "/usr/bin/chromium")
 ARTIFACTS = Path(os.environ.get("GGFSLAM_TEST_ARTIFACTS", Path(__file__).parents[1] / "test-artifacts"))
@@ -32,23 +33,11 @@ def run_dir(tmp_path_factory):
     by GGFSLAM_VIEWER_RUN (the README's screenshot is taken of a demo run that way)."""
     if os.environ.get("GGFSLAM_VIEWER_RUN"):
         return Path(os.environ["GGFSLAM_VIEWER_RUN"])
-    from ggfslam import slam
-    from ggfslam.config import config_from_dict
-
-    root = tmp_path_factory.mktemp("viewer")
-    mp = pytest.MonkeyPatch()
-    mp.setenv("GGFSLAM_CACHE", str(root / "cache"))
-    cfg = config_from_dict({
-        "name": "viewer", "dataset": {"kind": "synthetic", "synthetic": {
-            "n_frames": 24, "width": 320, "height": 240, "depth_noise": True}},
+    return run_synthetic(tmp_path_factory, "viewer", {
+        "dataset": {"kind": "synthetic", "synthetic": {"n_frames": 24, "width": 320, "height": 240,
+                                                      "depth_noise": True}},
         "tracking": {"keyframe_max_frames": 6}, "gcgr": {"enabled": True},
-        "mapping": {"train_width": 160, "iterations_per_keyframe": 30, "final_iterations": 60, "eval_stride": 8}},
-        "test")
-    try:
-        slam.run(cfg, root / "run", progress=False)
-    finally:
-        mp.undo()
-    return root / "run"
+        "mapping": {"train_width": 160, "iterations_per_keyframe": 30, "final_iterations": 60, "eval_stride": 8}})
 
 
 @pytest.fixture(scope="module")

@@ -234,6 +234,7 @@ def load_keyframes(run_dir: Path, graph: dict | None) -> Keyframes:
     from ggfslam.render_run import run_camera
 
     cam = run_camera(run_dir)
+    files = keyframe_images(run_dir)
     if graph is not None:
         kfs = graph["keyframes"]
         ids = np.array([k["id"] for k in kfs], np.int64)
@@ -243,10 +244,9 @@ def load_keyframes(run_dir: Path, graph: dict | None) -> Keyframes:
         _, poses = read_tum_trajectory(_need(run_dir / KEYFRAMES_FILE, "keyframe poses; the odometry baseline has "
                                              "no keyframes"))
         ids = np.arange(len(poses))
-        frames = np.array(sorted(keyframe_images(run_dir)), np.int64)
+        frames = np.array(sorted(files), np.int64)
         if len(frames) != len(poses):
             frames = np.full(len(poses), -1)
-    files = keyframe_images(run_dir)
     images = []
     for f in frames:
         if int(f) in files:
