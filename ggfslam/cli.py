@@ -127,8 +127,8 @@ def live(
         raise typer.BadParameter(f"{source!r}: expected 'replay' or 'replay:PATH'", param_hint="--source")
     if queue not in (1, 2):
         raise typer.BadParameter(f"{queue}: a queue of 1 or 2 frames", param_hint="--queue")
-    # mapping trains beside tracking (a sequential mapper would stall the input at every keyframe)
-    pre = ["mapping.concurrent=true"] + ([f"dataset.path={path}"] if path else [])
+    # bundle adjustment and mapping run beside tracking (sequential ones would stall the input at every keyframe)
+    pre = ["backend.concurrent=true", "mapping.concurrent=true"] + ([f"dataset.path={path}"] if path else [])
     if path:
         pre.append("dataset.kind=auto")
     cfg = (load_config(config, pre + set_) if config is not None

@@ -273,6 +273,11 @@ class BackendConfig(_Section):
     """Map points seen by fewer keyframes than this, three keyframes after creation, are culled."""
     concurrent: bool = False
     """Run bundle adjustment in a background thread (tracking never waits); False = sequential, repeatable."""
+    solver: Literal["process", "thread"] = "process"
+    """With ``concurrent``: where bundle adjustments are solved. 'process': a child process, while the backend thread
+    reads the problem from the map and writes the answer back (GTSAM holds the GIL while it optimizes, so in a thread
+    it stalls tracking: benchmarks/bench_backend_gil.py); 'thread': in the backend thread. With ``gcgr.enabled``
+    they are solved in the thread (GCGR's factors render this process's map)."""
     loop_closure: bool = True
     """Detect revisited places and correct the whole trajectory by pose-graph optimization."""
     global_ba: bool = True

@@ -253,6 +253,8 @@ def run(config: Config, out_dir: str | Path, overwrite: bool = False, progress: 
             source.stop()  # after an error the driver thread would read the rest of the sequence for nobody
         if st.worker is not None:
             st.worker.abort()  # no-op after finish(); after an error, no training goes on in the background
+        if getattr(st.tracker, "backend", None) is not None:
+            st.tracker.backend.close()  # no-op after finish(); after an error, its solver process ends
         log.removeHandler(handler)
         handler.close()
 

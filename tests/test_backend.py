@@ -150,3 +150,83 @@ def test_global_ba_optimizes_every_keyframe_with_the_oldest_held():
     for k in range(1, 6):
         d = invert(truth[k]) @ smap.keyframes[k].T_wc
         assert np.linalg.norm(d[:3, 3]) < 1e-3 and Rotation.from_matrix(d[:3, :3]).magnitude() < 1e-3
+
+
+def _perturbed_map(seed):
+    rng = np.random.default_rng(seed)
+    smap, truth, pts = _build_map(rng)
+    for k in (1, 2, 3):
+        smap.keyframes[k].T_wc = truth[k] @ make_pose(Rotation.from_rotvec(rng.normal(scale=0.01, size=3)).as_matrix(),
+                                                      rng.normal(scale=0.02, size=3))
+    smap.positions[: len(pts)] += rng.normal(scale=0.01, size=pts.shape)
+    smap.keyframes[3].features.uv[7] += 30.0  # one gross mismatch
+    return smap
+
+
+def test_the_solver_process_gives_the_same_bundle_adjustment_as_this_process():
+    from ggfslam.backend.solver_process import SolverProcess
+
+    cfg = BackendConfig(window=8, iterations=20)
+    here, there = _perturbed_map(5), _perturbed_map(5)
+    s_here = local_bundle_adjustment(here, 3, CAM, TCFG, cfg)
+    solver = SolverProcess()
+    try:
+        s_there = local_bundle_adjustment(there, 3, CAM, TCFG, cfg, solver=solver)
+        assert solver.solved == 1 and solver.alive
+    finally:
+        solver.close()
+    assert not solver.alive
+    assert (s_there.outliers, s_there.landmarks, s_there.keyframes) == (s_here.outliers, s_here.landmarks, s_here.keyframes)
+    assert s_there.error_after == pytest.approx(s_here.error_after, rel=1e-9, abs=1e-12)
+    for k in here.keyframes:
+        np.testing.assert_allclose(there.keyframes[k].T_wc, here.keyframes[k].T_wc, atol=1e-12)
+    np.testing.assert_allclose(there.positions, here.positions, atol=1e-12)
+    assert 3 not in there.observations[7]  # the outlier found in the child is dropped from this map
+
+
+def test_a_dead_solver_process_falls_back_to_this_process_with_one_warning(caplog):
+    from ggfslam.backend.solver_process import SolverProcess
+
+    cfg = BackendConfig(window=8, iterations=20)
+    solver = SolverProcess()
+    solver._proc.kill()
+    solver._proc.wait()
+    smap = _perturbed_map(6)
+    with caplog.at_level(logging.WARNING, logger="ggfslam.backend"):
+        stats = local_bundle_adjustment(smap, 3, CAM, TCFG, cfg, solver=solver)
+        local_bundle_adjustment(smap, 3, CAM, TCFG, cfg, solver=solver)
+    assert stats is not None and stats.outliers >= 1 and stats.error_after < 1e-3 * stats.error_before
+    assert solver.solved == 0
+    assert "solver process ended (exit code -9" in solver.fallback
+    assert sum("solved in the tracking process" in r.message for r in caplog.records) == 1
+    solver.close()
+
+
+def test_an_error_in_the_solver_process_is_raised_with_its_traceback():
+    from ggfslam.backend.local_ba import ba_problem
+    from ggfslam.backend.solver_process import SolverError, SolverProcess
+
+    problem = ba_problem(_perturbed_map(7), 3, CAM, TCFG, BackendConfig(window=8, iterations=5))
+    problem.uv = problem.uv[:5]  # observations without keypoints: the child's graph building fails
+    solver = SolverProcess()
+    try:
+        with pytest.raises(SolverError, match="Traceback"):
+            solver.solve(problem)
+        assert solver.alive  # and it goes on serving
+    finally:
+        solver.close()
+
+
+def test_a_concurrent_backend_solves_in_its_process_and_stops_it_when_finished():
+    smap = _perturbed_map(8)
+    cfg = BackendConfig(window=8, iterations=20, concurrent=True, loop_closure=False, fusion=False, planes=False)
+    backend = Backend(CAM, TCFG, cfg)
+    backend.map = smap
+    assert backend._solver is not None and backend._solver.alive
+    proc = backend._solver._proc
+    backend.insert_keyframe(smap.keyframes[3])
+    backend.finish()
+    assert proc.poll() == 0  # ended on its own when its input closed
+    s = backend.summary()
+    assert s["ba_runs"] == 1 and s["solved_in_process"] == 1 and "solver_fallback" not in s
+    assert backend.stats.outliers_removed == 1

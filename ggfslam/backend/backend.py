@@ -1,7 +1,8 @@
 """The backend: owns the map, runs local bundle adjustment, landmark culling and loop closure per keyframe.
 
 In sequential mode every keyframe is processed before tracking continues (repeatable runs); in concurrent mode a
-worker thread takes keyframes from a queue and tracking never waits for it.
+worker thread takes keyframes from a queue and tracking never waits for it, and with ``backend.solver: process``
+the thread hands each bundle adjustment to a child process (GTSAM holds the GIL while it optimizes).
 """
 from __future__ import annotations
 
@@ -42,6 +43,8 @@ class BackendStats:
     global_ba_seconds: float = 0.0  # their total time
     final_ba_done: bool = False  # the final global BA ran (finish() may be called again)
     final_ba_seconds: float = 0.0
+    solved_in_process: int = 0  # bundle adjustments the solver process solved (backend.solver: process)
+    solver_fallback: str = ""  # why later ones were solved in the tracking process ("": none were)
 
 
 class Backend:
@@ -60,25 +63,32 @@ class Backend:
         self._queue: queue.Queue | None = None
         self._thread: threading.Thread | None = None
         self._error: BaseException | None = None
-        if bcfg.concurrent:
-            self._queue = queue.Queue()
-            self._thread = threading.Thread(target=self._worker, name="ggfslam-backend", daemon=True)
-            self._thread.start()
+        self._solver = None
+        self._start_worker()
+
+    def _start_worker(self) -> None:
+        if not self.bcfg.concurrent:
+            return
+        if self.bcfg.solver == "process":
+            from ggfslam.backend.solver_process import SolverProcess
+
+            self._solver = SolverProcess()
+        self._queue = queue.Queue()
+        self._thread = threading.Thread(target=self._worker, name="ggfslam-backend", daemon=True)
+        self._thread.start()
 
     def __getstate__(self) -> dict:
         """Checkpoints: the queue must be drained first (``drain()``); the worker thread is not pickled."""
         if self._queue is not None and self._queue.unfinished_tasks:
             raise RuntimeError("backend: drain() the keyframe queue before pickling")
         state = self.__dict__.copy()
-        state.update(_queue=None, _thread=None, _error=None, gcgr=None)  # the map is saved by the mapper
+        state.update(_queue=None, _thread=None, _error=None, _solver=None, gcgr=None)  # the map is saved by the mapper
         return state
 
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
-        if self.bcfg.concurrent:
-            self._queue = queue.Queue()
-            self._thread = threading.Thread(target=self._worker, name="ggfslam-backend", daemon=True)
-            self._thread.start()
+        self._solver = None
+        self._start_worker()
 
     def drain(self) -> None:
         """Wait until every queued keyframe is processed (the worker keeps running)."""
@@ -134,7 +144,7 @@ class Backend:
         if self.bcfg.planes:
             associate_planes(self.map, kf_id, self.bcfg)
         stats: BAStats | None = local_bundle_adjustment(self.map, kf_id, self.camera, self.tcfg, self.bcfg,
-                                                           self.gcgr)
+                                                           self.gcgr, solver=self._solver)
         if stats is not None and not self._failed(stats, "local BA", kf_id):
             self.stats.ba_runs += 1
             self.stats.ba_seconds.append(stats.seconds)
@@ -168,7 +178,8 @@ class Backend:
         from ggfslam.backend.local_ba import global_bundle_adjustment
 
         what = "final global BA" if final else "global BA"
-        stats = global_bundle_adjustment(self.map, self.camera, self.tcfg, self.bcfg, self.gcgr if final else None)
+        stats = global_bundle_adjustment(self.map, self.camera, self.tcfg, self.bcfg, self.gcgr if final else None,
+                                         solver=self._solver)
         if stats is None or self._failed(stats, what, max(self.map.keyframes)):
             return
         if final:
@@ -219,15 +230,26 @@ class Backend:
 
     def finish(self) -> None:
         """Wait for queued keyframes to be processed and stop the worker; then, once, the final global BA
-        (``backend.final_global_ba``)."""
-        if self._queue is not None and self._thread is not None and self._thread.is_alive():
-            self._queue.put(None)
-            self._thread.join()
-        if self._error is not None:
-            raise RuntimeError("backend worker failed") from self._error
-        if self.bcfg.final_global_ba and self.bcfg.fusion and not self.stats.final_ba_done:
-            self.stats.final_ba_done = True
-            self._global_ba(final=True)
+        (``backend.final_global_ba``); then stop the solver process."""
+        try:
+            if self._queue is not None and self._thread is not None and self._thread.is_alive():
+                self._queue.put(None)
+                self._thread.join()
+            if self._error is not None:
+                raise RuntimeError("backend worker failed") from self._error
+            if self.bcfg.final_global_ba and self.bcfg.fusion and not self.stats.final_ba_done:
+                self.stats.final_ba_done = True
+                self._global_ba(final=True)
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        """Stop the solver process, if any (``finish`` does; a run that stops early calls it too)."""
+        if self._solver is not None:
+            self.stats.solved_in_process += self._solver.solved
+            self.stats.solver_fallback = self._solver.fallback
+            self._solver.close()
+            self._solver = None
 
     def summary(self) -> dict:
         """Backend figures for metrics.json."""
@@ -242,4 +264,7 @@ class Backend:
             "loops": len(s.loops), "global_ba_runs": s.global_ba_runs, "final_ba_ms": 1000 * s.final_ba_seconds,
             "global_ba_ms_mean": 1000 * s.global_ba_seconds / max(s.global_ba_runs, 1),
             **({"gcgr": self.gcgr.summary()} if self.gcgr is not None else {}),
+            **({"solved_in_process": s.solved_in_process} if self.bcfg.concurrent and self.bcfg.solver == "process"
+               else {}),
+            **({"solver_fallback": s.solver_fallback} if s.solver_fallback else {}),
         }

@@ -57,21 +57,58 @@ class BAStats:
 
 
 @dataclass
+class BAProblem:
+    """One bundle adjustment as plain arrays, read from the map under its lock: picklable, so it can be solved in
+    another process (``solver_process``) while tracking goes on."""
+
+    camera: Camera
+    tcfg: TrackingConfig
+    bcfg: BackendConfig
+    iterations: int
+    window: list[int]  # keyframes optimized (the fixed ones among them hold the gauge)
+    fixed: set[int]  # keyframes held by stiff priors
+    poses: dict[int, np.ndarray]  # keyframe id -> T_wc [4, 4] of every keyframe in the graph
+    lms: np.ndarray  # [L] landmark ids
+    positions: np.ndarray  # [L, 3] their world positions
+    obs: list[tuple[int, int, int]]  # (keyframe, landmark, keypoint) of each observation factor
+    uv: np.ndarray  # [M, 2] keypoint of each observation
+    depth: np.ndarray  # [M] its depth (m, 0 = none)
+    sigmas: np.ndarray  # [M] its pixel sigma
+    links: list  # (keyframe, other keyframe, T_other_keyframe [4, 4]) dense-odometry links
+    plane_obs: list  # (keyframe, plane id, camera-frame coefficients [4])
+    planes_w: dict  # plane id -> world coefficients [4]
+
+
+@dataclass
+class BASolution:
+    """What a bundle adjustment found (picklable): applied to the map by ``apply_solution``."""
+
+    stats: BAStats
+    poses: dict[int, np.ndarray]  # optimized (not fixed) keyframe id -> T_wc [4, 4]
+    positions: np.ndarray  # [L] landmarks' new positions [L, 3], in the problem's order
+    planes: dict[int, np.ndarray]  # plane id -> world coefficients [4]
+    outliers: list[tuple[int, int]]  # (landmark, keyframe) observations to drop
+
+
+@dataclass
 class LocalGraph:
     """The factor graph of one local bundle adjustment and what its outlier pass needs."""
 
+    problem: BAProblem
     graph: gtsam.NonlinearFactorGraph
     values: gtsam.Values
-    window: list[int]  # keyframes optimized (the fixed ones among them hold the gauge)
-    fixed: set[int]  # keyframes held by stiff priors
-    lms: np.ndarray  # [L] landmark ids
-    obs: list[tuple[int, int, int]]  # (keyframe, landmark, keypoint) of each observation factor
-    obs_factors: list  # the observation factors, last in the graph, in the order of obs
-    sigmas: list[float]  # pixel sigma of each observation
-    feats: dict  # keyframe id -> Features
-    planes_w: dict  # plane id -> world coefficients [4]
-    n_plane_obs: int
+    obs_factors: list  # the observation factors, last in the graph, in the order of problem.obs
     gcgr_labels: dict[int, tuple[int, str]]  # graph index -> (keyframe, kind) of each GCGR factor
+
+    @property
+    def window(self) -> list[int]:
+        """Keyframes optimized (the fixed ones among them hold the gauge)."""
+        return self.problem.window
+
+    @property
+    def fixed(self) -> set[int]:
+        """Keyframes held by stiff priors."""
+        return self.problem.fixed
 
     @property
     def n_gcgr(self) -> int:
@@ -79,13 +116,12 @@ class LocalGraph:
         return len(self.gcgr_labels)
 
 
-def local_graph(smap: SlamMap, kf_id: int, camera: Camera, tcfg: TrackingConfig, bcfg: BackendConfig,
-                gcgr=None, window: list[int] | None = None) -> LocalGraph | None:
-    """The local BA graph around keyframe ``kf_id`` at the map's current estimates; None if too small.
+def ba_problem(smap: SlamMap, kf_id: int, camera: Camera, tcfg: TrackingConfig, bcfg: BackendConfig,
+               window: list[int] | None = None, iterations: int | None = None) -> BAProblem | None:
+    """The local BA around keyframe ``kf_id`` at the map's current estimates; None if too small.
 
     ``window``: the keyframes to optimize (default: ``kf_id``'s covisible window); keyframes outside it that see
-    its landmarks are held fixed, and without any the oldest of the window is. With a ``GCGRSource`` every
-    optimized (not fixed) keyframe also gets its GCGR depth and normal factors."""
+    its landmarks are held fixed, and without any the oldest of the window is."""
     level_scale = tcfg.scale_factor ** np.arange(tcfg.n_levels)
     with smap.lock:  # snapshot, so tracking can go on while the optimizer runs
         if window is None:
@@ -129,71 +165,78 @@ def local_graph(smap: SlamMap, kf_id: int, camera: Camera, tcfg: TrackingConfig,
         positions = smap.positions[lms].copy()
     if len(window) - len(fixed & set(window)) < 1 or len(lms) < 10:
         return None
-    mono, stereo = calibrations(camera, tcfg.virtual_baseline)
+    uv = np.array([feats[k].uv[kp] for k, _, kp in obs], np.float64).reshape(-1, 2)  # [M, 2]
+    depth = np.array([feats[k].depth[kp] for k, _, kp in obs], np.float64)  # [M]
+    sigmas = tcfg.pixel_sigma * level_scale[np.array([feats[k].octave[kp] for k, _, kp in obs], np.int64)]  # [M]
+    return BAProblem(camera, tcfg, bcfg, bcfg.iterations if iterations is None else iterations, window, fixed,
+                     poses, lms, positions, obs, uv, depth, sigmas, links, plane_obs, planes_w)
+
+
+def build_graph(problem: BAProblem, gcgr=None) -> LocalGraph:
+    """The GTSAM factor graph of a BA problem; with a ``GCGRSource`` every optimized (not fixed) keyframe also gets
+    its GCGR depth and normal factors."""
+    pr, tcfg, bcfg = problem, problem.tcfg, problem.bcfg
+    mono, stereo = calibrations(pr.camera, tcfg.virtual_baseline)
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
-    for k, T in poses.items():
+    for k, T in pr.poses.items():
         values.insert(X(k), gtsam.Pose3(T))
-        if k in fixed:
+        if k in pr.fixed:
             # a stiff prior rather than NonlinearEquality: a constrained noise model forces slow QR elimination
             graph.add(gtsam.PriorFactorPose3(X(k), gtsam.Pose3(T), _FIXED_NOISE))
-    for lm, p in zip(lms, positions):
+    for lm, p in zip(pr.lms, pr.positions):
         values.insert(L(int(lm)), gtsam.Point3(*p))
-    for k, other, T_other_k in links:
+    for k, other, T_other_k in pr.links:
         graph.add(odometry_link_factor(other, k, T_other_k, tcfg.dense_link_sigmas))
-    for pid, pw in planes_w.items():
+    for pid, pw in pr.planes_w.items():
         values.insert(P(pid), gtsam.OrientedPlane3(*pw))
-    for k, pid, z in plane_obs:
+    for k, pid, z in pr.plane_obs:
         graph.add(plane_factor(k, pid, z, bcfg.plane_sigmas))
     gcgr_labels = {}
-    if gcgr is not None:  # before the observations: the outlier pass below keeps the graph's head as it is
-        for k, kind, f in gcgr.window_factors({k: poses[k] for k in window if k not in fixed}):
+    if gcgr is not None:  # before the observations: the outlier pass keeps the graph's head as it is
+        for k, kind, f in gcgr.window_factors({k: pr.poses[k] for k in pr.window if k not in pr.fixed}):
             gcgr_labels[graph.size()] = (k, kind)
             graph.add(f)
-    sigmas, factors = [], []
-    for k, lm, kp in obs:
-        f = feats[k]
-        sigma = tcfg.pixel_sigma * level_scale[f.octave[kp]]
-        factor = observation_factor(k, lm, f.uv[kp], f.depth[kp], sigma, mono, stereo,
-                                    bcfg.huber_stereo, bcfg.huber_mono)
+    factors = []
+    for (k, lm, _), uv, z, sigma in zip(pr.obs, pr.uv, pr.depth, pr.sigmas):
+        factor = observation_factor(k, lm, uv, z, sigma, mono, stereo, bcfg.huber_stereo, bcfg.huber_mono)
         graph.add(factor)
         factors.append(factor)
-        sigmas.append(sigma)
-    return LocalGraph(graph, values, window, fixed, lms, obs, factors, sigmas, feats, planes_w, len(plane_obs),
-                      gcgr_labels)
+    return LocalGraph(pr, graph, values, factors, gcgr_labels)
 
 
-def local_bundle_adjustment(smap: SlamMap, kf_id: int, camera: Camera, tcfg: TrackingConfig,
-                            bcfg: BackendConfig, gcgr=None, window: list[int] | None = None,
-                            iterations: int | None = None) -> BAStats | None:
-    """Optimize the window around keyframe ``kf_id`` (or ``window``, see ``local_graph``) with LM for
-    ``iterations`` (default ``backend.iterations``) and drop outlier observations; None if too small.
+def local_graph(smap: SlamMap, kf_id: int, camera: Camera, tcfg: TrackingConfig, bcfg: BackendConfig,
+                gcgr=None, window: list[int] | None = None, iterations: int | None = None) -> LocalGraph | None:
+    """The local BA graph around keyframe ``kf_id`` at the map's current estimates (``ba_problem``, ``build_graph``);
+    None if too small."""
+    problem = ba_problem(smap, kf_id, camera, tcfg, bcfg, window, iterations)
+    return None if problem is None else build_graph(problem, gcgr)
 
-    With a ``GCGRSource`` every optimized (not fixed) keyframe also gets its GCGR depth and normal factors."""
+
+def solve_graph(lg: LocalGraph) -> BASolution:
+    """Optimize a local graph with LM and drop outlier observations (whitened error above the chi-square bound, or
+    behind the camera), optimizing again without them."""
     t0 = time.perf_counter()
-    iterations = bcfg.iterations if iterations is None else iterations
-    lg = local_graph(smap, kf_id, camera, tcfg, bcfg, gcgr, window)
-    if lg is None:
-        return None
-    graph, values, window, fixed, lms, obs = lg.graph, lg.values, lg.window, lg.fixed, lg.lms, lg.obs
-    factors, sigmas, feats, planes_w = lg.obs_factors, lg.sigmas, lg.feats, lg.planes_w
+    pr, graph, values, factors = lg.problem, lg.graph, lg.values, lg.obs_factors
+    bcfg = pr.bcfg
     err0 = graph.error(values)
+
+    def stats(outliers: int, err1: float, failed: str = "") -> BAStats:
+        return BAStats(len(pr.window), len(pr.fixed), len(pr.lms), len(pr.obs), outliers, err0, err1,
+                       time.perf_counter() - t0, len(pr.plane_obs), lg.n_gcgr, failed)
+
     try:
-        result = optimize_lm(graph, values, iterations)
+        result = optimize_lm(graph, values, pr.iterations)
     except IndeterminateSystem as e:  # e.g. a landmark seen once without depth: keep the old estimate
-        return BAStats(len(window), len(fixed), len(lms), len(obs), 0, err0, err0, time.perf_counter() - t0,
-                       lg.n_plane_obs, lg.n_gcgr, failed=f"indeterminate system: {e}")
-    # outliers: whitened error above the chi-square bound, or behind the camera (all observations at once)
-    kf_of = np.array([k for k, _, _ in obs], dtype=np.int64)  # [M]
-    lm_of = np.array([lm for _, lm, _ in obs], dtype=np.int64)  # [M]
-    uv = np.array([feats[k].uv[kp] for k, _, kp in obs]).reshape(-1, 2)  # [M, 2]
-    depth = np.array([feats[k].depth[kp] for k, _, kp in obs])  # [M]
+        return BASolution(stats(0, err0, f"indeterminate system: {e}"), {}, pr.positions, {}, [])
+    kf_of = np.array([k for k, _, _ in pr.obs], dtype=np.int64)  # [M]
+    lm_of = np.array([lm for _, lm, _ in pr.obs], dtype=np.int64)  # [M]
     T_now = {k: result.atPose3(X(k)).matrix() for k in set(kf_of.tolist())}
     _, chi2 = observation_errors(np.stack([T_now[k] for k in kf_of]).reshape(-1, 4, 4),
                                  np.array([result.atPoint3(L(int(lm))) for lm in lm_of]).reshape(-1, 3),
-                                 uv, depth, np.asarray(sigmas), camera, tcfg.virtual_baseline,
+                                 pr.uv, pr.depth, pr.sigmas, pr.camera, pr.tcfg.virtual_baseline,
                                  bcfg.huber_stereo, bcfg.huber_mono)
-    keep = chi2 <= np.where(depth > 0, bcfg.outlier_chi2_stereo, bcfg.outlier_chi2_mono)  # [M]
+    keep = chi2 <= np.where(pr.depth > 0, bcfg.outlier_chi2_stereo, bcfg.outlier_chi2_mono)  # [M]
     outliers = [(int(lm_of[i]), int(kf_of[i])) for i in np.nonzero(~keep)[0]]
     if outliers:
         # optimize again without them: even Huber-weighted, a gross mismatch drags its landmark off (ORB-SLAM does the same)
@@ -205,32 +248,70 @@ def local_bundle_adjustment(smap: SlamMap, kf_id: int, camera: Camera, tcfg: Tra
                 clean.add(factor)
         graph = clean
         try:
-            result = optimize_lm(graph, result, max(iterations // 2, 3))
+            result = optimize_lm(graph, result, max(pr.iterations // 2, 3))
         except IndeterminateSystem:  # removing the outliers left a variable free: keep the first solution
             pass
     err1 = graph.error(result)
+    poses = {k: result.atPose3(X(k)).matrix() for k in pr.window if k not in pr.fixed}
+    positions = np.array([result.atPoint3(L(int(lm))) for lm in pr.lms]).reshape(-1, 3)  # [L, 3]
+    planes = {pid: result.atOrientedPlane3(P(pid)).planeCoefficients() for pid in pr.planes_w}
+    return BASolution(stats(len(outliers), err1), poses, positions, planes, outliers)
+
+
+def solve(problem: BAProblem) -> BASolution:
+    """Build and solve a BA problem without GCGR factors (what the solver process runs)."""
+    return solve_graph(build_graph(problem))
+
+
+def apply_solution(smap: SlamMap, problem: BAProblem, sol: BASolution) -> None:
+    """Write a solution into the map: keyframes and planes moved, landmarks still alive moved, outlier observations
+    dropped (tracking may have changed the map meanwhile: keyframes and landmarks it removed are passed over)."""
+    if sol.stats.failed:
+        return
     with smap.lock:
-        for k in window:
-            if k not in fixed and k in smap.keyframes:
-                smap.keyframes[k].T_wc = result.atPose3(X(k)).matrix()
-        for lm in lms:
-            if smap.alive[lm]:
-                smap.positions[lm] = result.atPoint3(L(int(lm)))
-        for lm, k in outliers:
+        for k, T in sol.poses.items():
+            if k in smap.keyframes:
+                smap.keyframes[k].T_wc = T
+        alive = smap.alive[problem.lms]  # [L]
+        smap.positions[problem.lms[alive]] = sol.positions[alive]
+        for lm, k in sol.outliers:
             smap.remove_observation(lm, k)
-        for pid in planes_w:
-            smap.planes[pid] = result.atOrientedPlane3(P(pid)).planeCoefficients()
-    return BAStats(len(window), len(fixed), len(lms), len(obs), len(outliers), err0, err1,
-                   time.perf_counter() - t0, lg.n_plane_obs, lg.n_gcgr)
+        for pid, coeffs in sol.planes.items():
+            smap.planes[pid] = coeffs
+
+
+def local_bundle_adjustment(smap: SlamMap, kf_id: int, camera: Camera, tcfg: TrackingConfig,
+                            bcfg: BackendConfig, gcgr=None, window: list[int] | None = None,
+                            iterations: int | None = None, solver=None) -> BAStats | None:
+    """Optimize the window around keyframe ``kf_id`` (or ``window``, see ``ba_problem``) with LM for
+    ``iterations`` (default ``backend.iterations``), drop outlier observations and write the result into the map;
+    None if too small.
+
+    With a ``GCGRSource`` every optimized (not fixed) keyframe also gets its GCGR depth and normal factors; without
+    one, a ``solver`` (``solver_process.SolverProcess``) solves it in its own process."""
+    t0 = time.perf_counter()
+    if solver is not None and gcgr is None:
+        problem = ba_problem(smap, kf_id, camera, tcfg, bcfg, window, iterations)
+        if problem is None:
+            return None
+        sol = solver.solve(problem)
+    else:
+        lg = local_graph(smap, kf_id, camera, tcfg, bcfg, gcgr, window, iterations)
+        if lg is None:
+            return None
+        problem, sol = lg.problem, solve_graph(lg)
+    apply_solution(smap, problem, sol)
+    sol.stats.seconds = time.perf_counter() - t0  # snapshot, graph and write-back included, as before
+    return sol.stats
 
 
 def global_bundle_adjustment(smap: SlamMap, camera: Camera, tcfg: TrackingConfig, bcfg: BackendConfig,
-                             gcgr=None) -> BAStats | None:
+                             gcgr=None, solver=None) -> BAStats | None:
     """Bundle-adjust every keyframe and landmark, the oldest keyframe held (after a loop closure, at the end), with
-    the GCGR factors of ``gcgr`` (a ``GCGRSource``) when given."""
+    the GCGR factors of ``gcgr`` (a ``GCGRSource``) when given, else in ``solver``'s process when given."""
     with smap.lock:
         every = sorted(smap.keyframes)
     if len(every) < 2:
         return None
     return local_bundle_adjustment(smap, every[-1], camera, tcfg, bcfg, gcgr=gcgr, window=every,
-                                   iterations=bcfg.global_ba_iterations)
+                                   iterations=bcfg.global_ba_iterations, solver=solver)
