@@ -111,6 +111,9 @@ def live(
     out: Path = typer.Option(..., "--out", "-o", help="Run directory to create."),
     rate: float = typer.Option(1.0, help="Replay speed: 1.0 = the timestamps' own pace, 0.25 = four times slower."),
     queue: int = typer.Option(2, help="Frames waiting for the system at most (1 or 2); older ones are dropped."),
+    preload: Optional[bool] = typer.Option(None, "--preload/--no-preload", help="Decode every frame before the "
+                                           "replay starts, as a sensor driver hands over decoded frames (default: "
+                                           "when they fit in 4 GiB)."),
     set_: list[str] = typer.Option([], "--set", help="Override a config value (repeatable)."),
     overwrite: bool = typer.Option(False, help="Replace an existing run directory made by ggfslam."),
     no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bar."),
@@ -128,7 +131,7 @@ def live(
     if queue not in (1, 2):
         raise typer.BadParameter(f"{queue}: a queue of 1 or 2 frames", param_hint="--queue")
     # bundle adjustment and mapping run beside tracking (sequential ones would stall the input at every keyframe)
-    pre = ["backend.concurrent=true", "mapping.concurrent=true"] + ([f"dataset.path={path}"] if path else [])
+    pre = ["backend.concurrent=true", "mapping.concurrent=true", "mapping.realtime=true", "mapping.final_seconds=60"] + ([f"dataset.path={path}"] if path else [])
     if path:
         pre.append("dataset.kind=auto")
     cfg = (load_config(config, pre + set_) if config is not None
@@ -138,7 +141,7 @@ def live(
 
     with _live_viewer(view, host, port) as viewer:
         metrics = slam.run(cfg, out, overwrite=overwrite, progress=not no_progress, observer=viewer,
-                           live=lambda ds: ReplaySource(ds, rate, queue))
+                           live=lambda ds: ReplaySource(ds, rate, queue, preload))
         _print_result(metrics, out, f"{cfg.name} (live): {metrics['live']['source']}")
 
 

@@ -352,8 +352,16 @@ class MappingConfig(_Section):
     anchors fill most of its view) and keyframes drawn by their current photometric error, alternately."""
     final_iterations: int = 300
     """Refinement steps over all keyframes after the last frame (0 = none)."""
+    final_seconds: float = 0.0
+    """When > 0, the final refinement trains for this many seconds instead of ``final_iterations`` steps, each step
+    on a keyframe drawn by its error (keyframes not trained yet first). ``ggfslam live`` sets 60."""
     idle_training: bool = True
     """Concurrent mode: keep training on random keyframes while no new keyframe waits."""
+    realtime: bool = False
+    """Concurrent mode: a new keyframe cuts the current one's focused training short (the newest view matters most
+    while the sensor moves), and when the input ends the keyframes still queued are only seeded, their training
+    left to the final refinement (see ``final_seconds``), so the run ends soon after its input. ``ggfslam live``
+    sets it."""
     lambda_ssim: float = 0.2
     """Weight of (1 - SSIM) in the photometric loss (L1 gets 1 - this)."""
     lambda_depth: float = 0.5

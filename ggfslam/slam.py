@@ -318,7 +318,8 @@ def _restore_or_start(config: Config, dataset: RGBDDataset, run_dir: Path, ckpt:
             st.mapper.store.retain(ckpt["kf_frames"])
         elif ckpt is None:
             st.mapper.store.retain({})  # images a run stopped before its first checkpoint left behind
-        st.worker = MappingWorker(st.mapper, config.mapping.concurrent, config.mapping.threads)
+        st.worker = MappingWorker(st.mapper, config.mapping.concurrent, config.mapping.threads,
+                                  config.mapping.realtime)
         attach_gcgr(config, st.tracker, st.mapper, dataset.camera)
         for kf_id, lms in (ckpt or {}).get("pending", {}).items():
             st.worker.enqueue(kf_id, lms)
@@ -436,8 +437,21 @@ def _finish_sequence(config: Config, st: _RunState) -> None:
     if st.mapper is not None:
         with st.timer("final_refinement"):
             st.mapper.sync_poses()  # the final global BA may have moved keyframes
-            st.mapper.train(config.mapping.final_iterations)
+            if config.mapping.final_seconds > 0:
+                st.mapper.train(sys.maxsize, stop=_Deadline(config.mapping.final_seconds))
+            else:
+                st.mapper.train(config.mapping.final_iterations)
     st.wall += time.perf_counter() - t0
+
+
+class _Deadline:
+    """A stop signal (``is_set``) that turns on ``seconds`` after it is made."""
+
+    def __init__(self, seconds: float):
+        self.end = time.perf_counter() + seconds
+
+    def is_set(self) -> bool:
+        return time.perf_counter() >= self.end
 
 
 def _write_trajectories(run_dir: Path, st: _RunState, note: str = ""):

@@ -63,6 +63,58 @@ def test_refine_pose_recovers_the_pose_and_flags_outliers():
     assert not res.inliers[outliers].any() and res.inliers[:250].mean() > 0.9
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_projection_matching_kernel_equals_the_numpy_reference(seed):
+    from ggfslam.frontend.matching import match_projected_reference
+
+    rng = np.random.default_rng(seed)
+    n_kp, n_pts = 1500, 900
+    # few distinct descriptors and keypoints in clusters: many ties in distance, points competing for keypoints
+    pool = rng.integers(0, 256, (40, 32), dtype=np.uint8)
+    kp_desc = pool[rng.integers(0, 40, n_kp)] ^ (rng.random((n_kp, 32)) < 0.03).astype(np.uint8)
+    kp_uv = np.concatenate([rng.uniform(0, 640, (n_kp // 2, 2)) * [1, 0.75],
+                            rng.normal([320, 240], 12, (n_kp - n_kp // 2, 2))])
+    kp_uv[::97] = np.round(kp_uv[::97])  # some on exact pixel positions
+    kp_oct = rng.integers(0, 8, n_kp)
+    src = rng.integers(0, n_kp, n_pts)
+    proj_uv = kp_uv[src] + rng.normal(scale=4.0, size=(n_pts, 2))
+    proj_desc = kp_desc[src] ^ (rng.random((n_pts, 32)) < 0.05).astype(np.uint8)
+    proj_level = np.clip(kp_oct[src] + rng.integers(-2, 3, n_pts), -1, 9)  # out-of-range levels are clipped
+    taken = rng.random(n_kp) < 0.1
+    scale = 1.2 ** np.arange(8)
+    for radius, tk in ((3.0, None), (15.0, taken), (40.0, taken)):
+        ref = match_projected_reference(proj_uv, proj_desc, proj_level, kp_uv, kp_desc, kp_oct, radius, scale, 60,
+                                        0.9, tk)
+        got = match_projected(proj_uv, proj_desc, proj_level, kp_uv, kp_desc, kp_oct, radius, scale, 60, 0.9, tk)
+        assert len(ref) > 50
+        np.testing.assert_array_equal(got, ref)
+    empty = np.zeros((0, 2))
+    assert match_projected(empty, proj_desc[:0], proj_level[:0], kp_uv, kp_desc, kp_oct, 5.0, scale, 60, 0.9).shape \
+        == (0, 2)
+
+
+def test_pose_refinement_kernel_equals_the_numpy_reference():
+    from ggfslam.frontend.pose_refine import normal_equations, normal_equations_reference, stereo_measurement
+
+    rng = np.random.default_rng(3)
+    T_cw = invert(make_pose(Rotation.from_euler("xyz", [3, -5, 8], degrees=True).as_matrix(), [0.1, -0.05, 0.2]))
+    X_w = rng.uniform([-2, -1.5, -0.5], [2, 1.5, 4.0], (400, 3))  # some behind the camera
+    bf = CAM.fx * 0.08
+    meas, _ = project_stereo(T_cw, X_w, CAM, bf)
+    uv = meas[:, :2] + rng.normal(scale=2.0, size=(400, 2))  # Huber weights below 1 for some
+    depth = np.abs(rng.normal(2.0, 1.0, 400))
+    depth[:80] = 0.0
+    meas = stereo_measurement(uv, depth, bf)
+    w_info = 1.0 / rng.uniform(0.8, 3.0, 400) ** 2
+    inlier = rng.random(400) < 0.9
+    args = (T_cw, X_w, meas, depth > 0, w_info, inlier, CAM.fx, CAM.fy, CAM.cx, CAM.cy, bf)
+    H_ref, g_ref, n_ref = normal_equations_reference(*args)
+    H, g, n = normal_equations(*args)
+    assert n == n_ref and 100 < n < 400
+    np.testing.assert_allclose(H, H_ref, rtol=1e-10, atol=1e-9 * np.abs(H_ref).max())
+    np.testing.assert_allclose(g, g_ref, rtol=1e-10, atol=1e-9 * np.abs(g_ref).max())
+
+
 def test_orb_keypoints_cover_the_image():
     seq = SyntheticSequence(n_frames=2, width=320, height=240, seed=0)
     f = seq[0]

@@ -25,10 +25,12 @@ def test_latest_frames_drops_the_oldest_when_full():
         LatestFrames(0)
 
 
-def test_a_consumer_that_keeps_up_gets_every_frame_on_time(make_tum):
+@pytest.mark.parametrize("preload", [True, False])
+def test_a_consumer_that_keeps_up_gets_every_frame_on_time(make_tum, preload):
     ds = TUMDataset(make_tum(N))
     rate = 2.0  # 60 Hz
-    src = ReplaySource(ds, rate).start()
+    src = ReplaySource(ds, rate, preload=preload).start()
+    assert ("decoded beforehand" in src.describe()) == preload
     got = list(src)
     assert [a.index for a in got] == list(range(N)) and src.stats.dropped == []
     assert src.stats.received == N
@@ -61,6 +63,7 @@ def test_stopping_ends_the_input_and_an_unreadable_frame_arrives_as_its_error(ma
     root = make_tum(N)
     (root / "rgb" / "100.000000.png").write_bytes(b"not a png at all")
     src = ReplaySource(TUMDataset(root), rate=1.0).start()
+    assert src.preload  # 60 small frames fit the budget: decoded before the clock starts
     first = src.queue.get(timeout=5)
     assert first.index == 0 and first.frame is None and "cannot decode" in str(first.error)
     time.sleep(0.2)
@@ -70,3 +73,11 @@ def test_stopping_ends_the_input_and_an_unreadable_frame_arrives_as_its_error(ma
     assert all(a.index < N // 2 for a in rest)
     with pytest.raises(ValueError, match="rate"):
         ReplaySource(TUMDataset(root), rate=0.0)
+
+
+def test_a_replay_too_large_for_memory_reads_frames_as_they_fall_due(make_tum, monkeypatch):
+    from ggfslam.sources import replay
+
+    ds = TUMDataset(make_tum(N))
+    monkeypatch.setattr(replay, "PRELOAD_BUDGET_BYTES", N * ds.camera.width * ds.camera.height * 16 - 1)
+    assert not ReplaySource(ds).preload and ReplaySource(ds, preload=True).preload

@@ -6,6 +6,9 @@ keyframes keeps training on random keyframes (``mapping.idle_training``). The nu
 GIL, and the worker gets an explicit numba thread budget (``mapping.threads``) so tracking and mapping
 do not oversubscribe the cores (PERF_NOTES: two threads each asking for all cores collapse). Once
 tracking has finished, the worker takes every core for the keyframes still queued.
+
+With ``mapping.realtime`` (live input) a newly queued keyframe ends the current keyframe's focused training, and
+once tracking has finished the queued keyframes are only seeded: the final refinement trains them.
 """
 from __future__ import annotations
 
@@ -23,8 +26,9 @@ log = logging.getLogger("ggfslam")
 class MappingWorker:
     """Feeds keyframes to a ``Mapper``: inline (sequential, repeatable) or in a worker thread."""
 
-    def __init__(self, mapper: Mapper, concurrent: bool, threads: int = 1):
+    def __init__(self, mapper: Mapper, concurrent: bool, threads: int = 1, realtime: bool = False):
         self.mapper = mapper
+        self.realtime = realtime
         self.cfg = mapper.cfg
         self.concurrent = concurrent
         self.threads = threads
@@ -82,6 +86,9 @@ class MappingWorker:
                     full = True
                     log.info("tracking finished: mapping takes %d threads for %d queued keyframes (%d steps so far)",
                              numba.get_num_threads(), self._queue.qsize(), m.iteration)
+                if full and self.realtime:
+                    self._seed_queued()
+                    return
                 idle = self.cfg.idle_training and len(m.store) > 0 and not self._stop.is_set()
                 try:
                     kf_id = self._queue.get(timeout=0.0 if idle else 0.05)
@@ -94,7 +101,7 @@ class MappingWorker:
                 with self._pending_lock:
                     landmarks = self._pending.get(kf_id)
                 m.seed_keyframe(kf_id, landmarks=landmarks)
-                m.train(m.keyframe_budget(kf_id), focus=kf_id, stop=self._abort)
+                m.train(m.keyframe_budget(kf_id), focus=kf_id, stop=_Preempt(self) if self.realtime else self._abort)
                 # pending until trained: a checkpoint taken meanwhile re-queues it on resume, where seeding it
                 # again is a no-op and its focused steps are run in full
                 with self._pending_lock:
@@ -102,6 +109,19 @@ class MappingWorker:
         except BaseException as e:  # surfaced to the tracking thread at the next keyframe / finish
             self._error = e
             log.exception("mapping worker failed")
+
+    def _seed_queued(self) -> None:
+        """Seed every queued keyframe without training it (realtime mode, once tracking has finished)."""
+        while not self._abort.is_set():
+            try:
+                kf_id = self._queue.get_nowait()
+            except queue.Empty:
+                return
+            with self._pending_lock:
+                landmarks = self._pending.get(kf_id)
+            self.mapper.seed_keyframe(kf_id, landmarks=landmarks)
+            with self._pending_lock:
+                self._pending.pop(kf_id, None)
 
     def _restore_torch_threads(self) -> None:
         import torch
@@ -130,3 +150,15 @@ class MappingWorker:
             self._thread.join()
             self._thread = None
             self._restore_torch_threads()
+
+
+class _Preempt:
+    """Stops a keyframe's focused training when the run is aborted, tracking has finished, or another keyframe
+    waits (realtime mode)."""
+
+    def __init__(self, worker: MappingWorker):
+        self.worker = worker
+
+    def is_set(self) -> bool:
+        w = self.worker
+        return w._abort.is_set() or w._stop.is_set() or not w._queue.empty()
