@@ -12,6 +12,7 @@ from typing import Optional
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 
 from ggfslam.errors import GGFSlamError
 
@@ -29,7 +30,8 @@ def user_errors(fn):
         try:
             return fn(*args, **kwargs)
         except GGFSlamError as e:
-            err_console.print(f"[red]error:[/red] {e}", highlight=False, soft_wrap=True)
+            # escaped: a message may hold square brackets (pip extras, paths) that rich would take for markup
+            err_console.print(f"[red]error:[/red] {escape(str(e))}", highlight=False, soft_wrap=True)
             raise typer.Exit(2) from None
         except KeyboardInterrupt:
             err_console.print("interrupted")
@@ -102,18 +104,61 @@ def run(
         _print_result(metrics, out, f"{cfg.name}: {metrics['sequence']['dataset']}")
 
 
+LIVE_TRAIN_WIDTH = 320  # live runs train the map at this width unless the config or --set says otherwise
+
+
+def _live_source(source: str, out: Path, rate: float, queue: int, preload: Optional[bool], fps: float,
+                 width: int, height: int, idle_timeout: float):
+    """(the source's config overrides, a factory of the source from the loaded config)."""
+    kind, colon, arg = source.partition(":")
+    if kind not in ("replay", "realsense", "folder") or (colon and not arg) or (kind == "folder" and not arg):
+        raise typer.BadParameter(f"{source!r}: expected replay[:PATH], realsense[:SERIAL or recording .bag/.db3] "
+                                 "or folder:PATH", param_hint="--source")
+    if queue not in (1, 2):
+        raise typer.BadParameter(f"{queue}: a queue of 1 or 2 frames", param_hint="--queue")
+    if kind == "replay":
+        from ggfslam.sources.replay import ReplaySource
+
+        def replay(cfg):
+            from ggfslam.data.sources import open_dataset_from_config
+
+            return ReplaySource(open_dataset_from_config(cfg.dataset), rate, queue, preload)
+
+        return ([f"dataset.path={arg}", "dataset.kind=auto"] if arg else []), replay
+    # the source names the sequence: the config's dataset section is replaced (its path only has to be valid)
+    if kind == "folder":
+        from ggfslam.sources.folder import FolderSource
+
+        return [f"dataset.path={arg}", "dataset.kind=folder"], \
+            lambda cfg: FolderSource(arg, fps, idle_timeout, capacity=queue)
+    from ggfslam.sources.realsense import RECORDING_SUFFIXES, RealSenseSource
+
+    recording = arg if arg.lower().endswith(RECORDING_SUFFIXES) else None
+    serial = arg if arg and recording is None else None
+    return [f"dataset.path={out / 'input'}", "dataset.kind=tum"], \
+        lambda cfg: RealSenseSource(serial, recording, width, height, int(fps), capacity=queue)
+
+
 @app.command()
 @user_errors
 def live(
     config: Optional[Path] = typer.Argument(None, help="YAML config file (default: the built-in settings)."),
-    source: str = typer.Option(..., "--source", help="'replay' (the config's sequence) or 'replay:PATH' (any "
-                               "dataset folder ggfslam reads), delivered at its timestamps' pace."),
+    source: str = typer.Option(..., "--source", help="replay (the config's sequence) or replay:PATH (any dataset "
+                               "folder ggfslam reads), delivered at its timestamps' pace; realsense, "
+                               "realsense:SERIAL or realsense:RECORDING.bag|.db3 (pip install 'ggfslam[realsense]'); "
+                               "folder:PATH, a folder another program fills (rgb/, depth/, camera.yaml)."),
     out: Path = typer.Option(..., "--out", "-o", help="Run directory to create."),
-    rate: float = typer.Option(1.0, help="Replay speed: 1.0 = the timestamps' own pace, 0.25 = four times slower."),
+    rate: float = typer.Option(1.0, help="replay: speed, 1.0 = the timestamps' own pace, 0.25 = four times slower."),
     queue: int = typer.Option(2, help="Frames waiting for the system at most (1 or 2); older ones are dropped."),
-    preload: Optional[bool] = typer.Option(None, "--preload/--no-preload", help="Decode every frame before the "
-                                           "replay starts, as a sensor driver hands over decoded frames (default: "
-                                           "when they fit in 4 GiB)."),
+    preload: Optional[bool] = typer.Option(None, "--preload/--no-preload", help="replay: decode every frame before "
+                                           "the replay starts, as a sensor driver hands over decoded frames "
+                                           "(default: when they fit in 4 GiB)."),
+    fps: float = typer.Option(30.0, help="realsense: frame rate to stream; folder: frames per second of the "
+                                         "timestamps (index / fps)."),
+    width: int = typer.Option(640, help="realsense: width of the colour and depth streams."),
+    height: int = typer.Option(480, help="realsense: height of the colour and depth streams."),
+    idle_timeout: float = typer.Option(0.0, "--idle-timeout", help="folder: end the input after this many "
+                                                                   "seconds without a new frame (0: at Ctrl-C)."),
     set_: list[str] = typer.Option([], "--set", help="Override a config value (repeatable)."),
     overwrite: bool = typer.Option(False, help="Replace an existing run directory made by ggfslam."),
     no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bar."),
@@ -121,27 +166,30 @@ def live(
     port: int = typer.Option(8080, help="--view: port to serve on (0: any free one)."),
     host: str = typer.Option("127.0.0.1", help="--view: address to bind (default: this machine only)."),
 ):
-    """Run on frames delivered live: a replay on time, dropping what arrives while the system is busy. Ctrl-C
-    ends the input and the run finishes (outputs written, exit status 0); a second Ctrl-C stops at once."""
+    """Run on frames delivered live: a RealSense camera, a folder being filled, or a replay on time; frames that
+    arrive while the system is busy are dropped. Bundle adjustment and mapping run beside tracking; the map trains
+    at 320 px width (--set mapping.train_width=N to change) and for 60 s after the input ends
+    (mapping.final_seconds). Ctrl-C ends the input and the run finishes (outputs written, exit status 0); a second
+    Ctrl-C stops at once."""
     from ggfslam.config import apply_overrides, config_from_dict, load_config
 
-    kind, _, path = source.partition(":")
-    if kind != "replay" or (_ and not path):
-        raise typer.BadParameter(f"{source!r}: expected 'replay' or 'replay:PATH'", param_hint="--source")
-    if queue not in (1, 2):
-        raise typer.BadParameter(f"{queue}: a queue of 1 or 2 frames", param_hint="--queue")
+    pre, make_source = _live_source(source, out, rate, queue, preload, fps, width, height, idle_timeout)
     # bundle adjustment and mapping run beside tracking (sequential ones would stall the input at every keyframe)
-    pre = ["backend.concurrent=true", "mapping.concurrent=true", "mapping.realtime=true", "mapping.final_seconds=60"] + ([f"dataset.path={path}"] if path else [])
-    if path:
-        pre.append("dataset.kind=auto")
-    cfg = (load_config(config, pre + set_) if config is not None
-           else config_from_dict(apply_overrides({"name": "live"}, pre + set_), "live"))
+    pre += ["backend.concurrent=true", "mapping.concurrent=true", "mapping.realtime=true", "mapping.final_seconds=60"]
+
+    def load(overrides: list[str]):
+        return (load_config(config, overrides) if config is not None
+                else config_from_dict(apply_overrides({"name": "live"}, overrides), "live"))
+
+    cfg = load(pre + set_)
+    if not any(o.startswith("mapping.train_width=") for o in set_) and \
+            (cfg.mapping.train_width is None or cfg.mapping.train_width > LIVE_TRAIN_WIDTH):
+        cfg = load(pre + [f"mapping.train_width={LIVE_TRAIN_WIDTH}"] + set_)
     from ggfslam import slam
-    from ggfslam.sources.replay import ReplaySource
 
     with _live_viewer(view, host, port) as viewer:
         metrics = slam.run(cfg, out, overwrite=overwrite, progress=not no_progress, observer=viewer,
-                           live=lambda ds: ReplaySource(ds, rate, queue, preload))
+                           live=make_source(cfg))
         _print_result(metrics, out, f"{cfg.name} (live): {metrics['live']['source']}")
 
 

@@ -359,9 +359,9 @@ class MappingConfig(_Section):
     """Concurrent mode: keep training on random keyframes while no new keyframe waits."""
     realtime: bool = False
     """Concurrent mode: a new keyframe cuts the current one's focused training short (the newest view matters most
-    while the sensor moves), and when the input ends the keyframes still queued are only seeded, their training
-    left to the final refinement (see ``final_seconds``), so the run ends soon after its input. ``ggfslam live``
-    sets it."""
+    while the sensor moves), the mapping thread runs at a lower CPU priority than tracking (nice +10, Linux), and
+    when the input ends the keyframes still queued are only seeded, their training left to the final refinement
+    (see ``final_seconds``), so the run ends soon after its input. ``ggfslam live`` sets it."""
     lambda_ssim: float = 0.2
     """Weight of (1 - SSIM) in the photometric loss (L1 gets 1 - this)."""
     lambda_depth: float = 0.5

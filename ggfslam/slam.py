@@ -210,19 +210,27 @@ def run(config: Config, out_dir: str | Path, overwrite: bool = False, progress: 
     when it stopped before writing one). A run that stops early (an error, Ctrl-C, SIGTERM) first saves what it
     has (``_save_stopped_run``). ``observer`` (e.g. ``viewer.live.LiveViewer``) is told ``started(config, dataset,
     run_dir, tracker, mapper)``, ``frame(frame, result)`` after each tracked frame and ``finished(run_dir)``.
-    ``live(dataset)`` makes a live source of the dataset (``sources.replay.ReplaySource``): frames then arrive on
-    its clock, those arriving while the system is busy are dropped, and a stop request ends the input, after
-    which the run finishes and writes every output (metrics.json ``live``)."""
+    ``live`` is a live source (``sources.base.LiveSource``: a replay, a camera, a watched folder): frames then
+    arrive on its clock, those arriving while the system is busy are dropped, and a stop request ends the input,
+    after which the run finishes and writes every output (metrics.json ``live``)."""
     setup_runtime(config)
-    dataset = open_dataset_from_config(config.dataset)  # fails on bad input before the run folder is touched
     if live is not None and resume:
         raise RunDirError(f"{out_dir}: a live run cannot be resumed (its input is gone); start a new one")
-    run_dir, ckpt = _open_run_dir(config, out_dir, overwrite, resume)
+    source = live
+    # bad input (a dataset, a missing camera) fails before the run folder is touched
+    if source is None:
+        dataset = open_dataset_from_config(config.dataset)
+    else:
+        dataset, config = source.open(config, Path(out_dir))
+    try:
+        run_dir, ckpt = _open_run_dir(config, out_dir, overwrite, resume)
+    except BaseException:
+        if source is not None:
+            source.close()
+        raise
     handler = _attach_log(run_dir)
     st = _RunState(len(dataset))
-    source = None
-    if live is not None:
-        source = live(dataset)
+    if source is not None:
         st.live = {"latency_ms": [], "received": 0, "stopped_by": None, "source": source.describe()}
     try:
         with _StopRequests() as stop:
@@ -232,6 +240,8 @@ def run(config: Config, out_dir: str | Path, overwrite: bool = False, progress: 
                 write_json(run_dir / RUN_INFO_FILE, {**read_json(run_dir / RUN_INFO_FILE), "live": source.describe()})
             if observer is not None:
                 observer.started(config, dataset, run_dir, st.tracker, st.mapper)
+            if source is not None and st.mapper is not None:
+                warm_up_mapping(config, dataset.camera)
             _track_sequence(config, dataset, run_dir, st, stop, progress, observer, source)
             _finish_sequence(config, st)
             metrics = _write_outputs(config, dataset, run_dir, st)
@@ -250,7 +260,7 @@ def run(config: Config, out_dir: str | Path, overwrite: bool = False, progress: 
         raise
     finally:
         if source is not None:
-            source.stop()  # after an error the driver thread would read the rest of the sequence for nobody
+            source.close()  # after an error the driver would read the rest of the input for nobody
         if st.worker is not None:
             st.worker.abort()  # no-op after finish(); after an error, no training goes on in the background
         if getattr(st.tracker, "backend", None) is not None:
@@ -328,6 +338,30 @@ def _restore_or_start(config: Config, dataset: RGBDDataset, run_dir: Path, ckpt:
     st.consistent = st.start
 
 
+def warm_up_mapping(config: Config, camera) -> None:
+    """Load the mapper's compiled kernels (seeding, training steps, their losses) on a throwaway keyframe, so that a
+    live run's first keyframe does not hold the GIL for seconds loading them while frames arrive (a recording of
+    4 s at 8 Hz lost 22 of its first 23 frames that way)."""
+    import tempfile
+
+    from ggfslam.mapping.mapper import Mapper
+    from ggfslam.render.types import RenderSettings
+
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(0)
+    h, w = camera.height, camera.width
+    rgb = rng.random((h, w, 3), dtype=np.float32)  # [H, W, 3]
+    depth = np.full((h, w), 2.0, np.float32) + np.linspace(0, 0.5, w, dtype=np.float32)  # [H, W] a tilted wall
+    with tempfile.TemporaryDirectory(prefix="ggfslam-warmup-") as tmp:
+        pose = np.eye(4)
+        m = Mapper(config.mapping, camera, RenderSettings(backend=config.render.backend), lambda: {0: pose}, tmp,
+                   config.runtime.seed, ggf=config.ggf)
+        m.store.add(0, 0, rgb, depth)
+        m.seed_keyframe(0)
+        m.train(2, focus=0)
+    log.info("mapping kernels loaded in %.1f s, before the input starts", time.perf_counter() - t0)
+
+
 def _dataset_frames(dataset: RGBDDataset, st: _RunState, stop: _StopRequests):
     """Arrivals of a run read from disk, one after the other from ``st.start`` (no clock, nothing dropped); a stop
     request ends the run before the next frame is read (the frame being tracked is finished first)."""
@@ -358,7 +392,7 @@ def _track_sequence(config: Config, dataset: RGBDDataset, run_dir: Path, st: _Ru
     stop.tracking = True
     arrivals = _dataset_frames(dataset, st, stop) if source is None else iter(source.start())
     with _progress(show and sys.stderr.isatty()) as bar:
-        task = bar.add_task("tracking", total=st.n, completed=st.start, fps=0.0)
+        task = bar.add_task("tracking", total=st.n or None, completed=st.start, fps=0.0)
         for a in arrivals:
             i = a.index
             st.frame, st.consistent = i, i
@@ -398,9 +432,9 @@ def _track_sequence(config: Config, dataset: RGBDDataset, run_dir: Path, st: _Ru
                 st.rss.append((i + 1, round(current_rss_mb(), 1)))
             bar.update(task, advance=1, fps=st.timer.fps("tracking"))
     if source is not None:
-        source.stop()
+        source.close()  # the recording is complete before the outputs read it back
         _note_dropped(dataset, st, source, bar, task)
-        st.live["received"] = source.stats.received
+        st.live["received"] = st.n = source.stats.received  # a sensor's sequence is as long as what it sent
     stop.tracking = False
     st.frame = st.consistent = st.n
     st.wall += time.perf_counter() - t_start

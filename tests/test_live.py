@@ -56,9 +56,10 @@ def test_a_fast_replay_drops_frames_and_the_run_folder_accounts_for_every_one(ca
 
 
 def test_bad_sources_are_one_line(tmp_path):
-    for bad in ("realsense", "replay:", "folder:/x"):
+    for bad, expect in (("camera", "replay[:PATH]"), ("replay:", "replay[:PATH]"), ("folder", "folder:PATH"),
+                        (f"folder:{tmp_path / 'nothing'}", "folder to watch not found")):
         res = runner.invoke(app, ["live", "--source", bad, "--out", str(tmp_path / "x")])
-        assert res.exit_code == 2 and "replay:PATH" in res.output, res.output
+        assert res.exit_code == 2 and expect in res.output, res.output
     assert not (tmp_path / "x").exists()
 
 

@@ -7,8 +7,9 @@ GIL, and the worker gets an explicit numba thread budget (``mapping.threads``) s
 do not oversubscribe the cores (PERF_NOTES: two threads each asking for all cores collapse). Once
 tracking has finished, the worker takes every core for the keyframes still queued.
 
-With ``mapping.realtime`` (live input) a newly queued keyframe ends the current keyframe's focused training, and
-once tracking has finished the queued keyframes are only seeded: the final refinement trains them.
+With ``mapping.realtime`` (live input) a newly queued keyframe ends the current keyframe's focused training, the
+worker runs at a lower CPU priority than tracking, and once tracking has finished the queued keyframes are only
+seeded: the final refinement (in the run's thread) trains them.
 """
 from __future__ import annotations
 
@@ -75,6 +76,8 @@ class MappingWorker:
         import numba
 
         numba.set_num_threads(max(1, min(self.threads, numba.config.NUMBA_NUM_THREADS)))
+        if self.realtime:
+            _lower_priority()
         m = self.mapper
         full = False
         try:
@@ -150,6 +153,17 @@ class MappingWorker:
             self._thread.join()
             self._thread = None
             self._restore_torch_threads()
+
+
+def _lower_priority() -> None:
+    """Give this thread (and the threads it starts) nice +10: while frames arrive, tracking wins the cores. Linux
+    sets a thread's priority by its id; elsewhere this is a no-op."""
+    import os
+
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 10)
+    except (AttributeError, OSError) as e:
+        log.info("mapping thread priority unchanged (%s)", e)
 
 
 class _Preempt:
