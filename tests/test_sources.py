@@ -165,3 +165,18 @@ def test_a_live_run_on_a_folder_being_filled(tmp_path, sequence, monkeypatch):
     assert ate["ate_rmse_cm"] < 2.0, ate
     res = CliRunner().invoke(app, ["render", str(out), "--out", str(tmp_path / "renders")])
     assert res.exit_code == 0, res.output
+
+
+def test_a_driver_that_fails_ends_the_input_with_its_error():
+    from ggfslam.sources.base import LiveSource, SourceError
+
+    class Failing(LiveSource):
+        def _drive(self):
+            for i in range(2):
+                self._deliver(i, time.perf_counter(), time.perf_counter(), None)
+            raise SourceError("no frames from the camera for 5 s")
+
+    src = Failing(capacity=2).start()
+    assert [a.index for a in src] == [0, 1]  # what arrived before the failure still comes out, then the input ends
+    assert "no frames" in str(src.error)
+    src.close()

@@ -64,6 +64,7 @@ class Backend:
         self._thread: threading.Thread | None = None
         self._error: BaseException | None = None
         self._solver = None
+        self._plane_depth: dict[int, np.ndarray] = {}  # keyframe id -> depth [H, W] whose planes are not detected yet
         self._start_worker()
 
     def _start_worker(self) -> None:
@@ -87,6 +88,7 @@ class Backend:
 
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
+        self.__dict__.setdefault("_plane_depth", {})  # checkpoints written before planes were detected here
         self._solver = None
         self._start_worker()
 
@@ -107,6 +109,8 @@ class Backend:
         self.stats.keyframes += 1
         if self.gcgr is not None and depth is not None:
             self.gcgr.add_keyframe(kf.id, depth)
+        if self.bcfg.planes and depth is not None and "planes" not in kf.meta:
+            self._plane_depth[kf.id] = depth  # detected by _process: off the tracking thread in concurrent mode
         if self._queue is not None:
             if self._error is not None:
                 raise RuntimeError("backend worker failed") from self._error
@@ -133,6 +137,11 @@ class Backend:
                 self._queue.task_done()
 
     def _process(self, kf_id: int) -> None:
+        depth = self._plane_depth.pop(kf_id, None)
+        if depth is not None and kf_id in self.map.keyframes:
+            from ggfslam.frontend.planes import detect_planes
+
+            self.map.keyframes[kf_id].meta["planes"] = detect_planes(depth, self.camera)
         self._cull(kf_id)
         if self.bcfg.fusion:
             neighbours = self.map.local_keyframes(kf_id, self.bcfg.fusion_neighbours, min_shared=1,

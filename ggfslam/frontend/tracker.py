@@ -21,7 +21,6 @@ from ggfslam.data.types import Camera, Frame
 from ggfslam.frontend.dense_odometry import DenseOdometry
 from ggfslam.frontend.features import Features, OrbExtractor
 from ggfslam.frontend.matching import match_projected, match_ratio
-from ggfslam.frontend.planes import detect_planes
 from ggfslam.frontend.pose_refine import refine_pose
 from ggfslam.frontend.types import TrackingState, TrackResult
 from ggfslam.geometry.pnp import pnp_ransac
@@ -214,8 +213,6 @@ class OrbTracker:
         kf = KeyFrame(self.next_kf_id, frame.index, frame.timestamp, T.copy(), F, np.full(len(F), -1, np.int64))
         if link is not None:
             kf.meta["odometry_link"] = link  # (keyframe id, T_that_this)
-        if self.backend.bcfg.planes:
-            kf.meta["planes"] = detect_planes(frame.depth, self.camera)
         self.next_kf_id += 1
         self.map.add_keyframe(kf)
         with self.map.lock:

@@ -35,6 +35,7 @@ class MappingWorker:
         self.threads = threads
         self._queue: queue.Queue = queue.Queue()
         self._pending: dict[int, np.ndarray | None] = {}  # queued, not yet trained (saved in checkpoints)
+        self._unstored: dict[int, tuple] = {}  # realtime: (frame index, rgb, depth) the worker stores before seeding
         self._pending_lock = threading.Lock()
         self._stop = threading.Event()
         self._abort = threading.Event()
@@ -52,9 +53,14 @@ class MappingWorker:
 
     def submit(self, kf_id: int, frame_index: int, rgb: np.ndarray, depth: np.ndarray,
                landmarks: np.ndarray | None = None) -> None:
-        """A new keyframe: stored now, seeded and trained now (sequential) or by the worker."""
+        """A new keyframe: stored now (in realtime mode by the worker, off the tracking thread: ~40 ms at 640x480),
+        seeded and trained now (sequential) or by the worker."""
         self._raise()
-        self.mapper.store.add(kf_id, frame_index, rgb, depth)
+        if self.realtime and self.concurrent:
+            with self._pending_lock:
+                self._unstored[kf_id] = (frame_index, rgb, depth)
+        else:
+            self.mapper.store.add(kf_id, frame_index, rgb, depth)
         self.enqueue(kf_id, landmarks)
 
     def enqueue(self, kf_id: int, landmarks: np.ndarray | None = None) -> None:
@@ -101,8 +107,7 @@ class MappingWorker:
                     if idle:
                         m.train(5, stop=self._abort)
                     continue
-                with self._pending_lock:
-                    landmarks = self._pending.get(kf_id)
+                landmarks = self._take(kf_id)
                 m.seed_keyframe(kf_id, landmarks=landmarks)
                 m.train(m.keyframe_budget(kf_id), focus=kf_id, stop=_Preempt(self) if self.realtime else self._abort)
                 # pending until trained: a checkpoint taken meanwhile re-queues it on resume, where seeding it
@@ -120,11 +125,18 @@ class MappingWorker:
                 kf_id = self._queue.get_nowait()
             except queue.Empty:
                 return
-            with self._pending_lock:
-                landmarks = self._pending.get(kf_id)
-            self.mapper.seed_keyframe(kf_id, landmarks=landmarks)
+            self.mapper.seed_keyframe(kf_id, landmarks=self._take(kf_id))
             with self._pending_lock:
                 self._pending.pop(kf_id, None)
+
+    def _take(self, kf_id: int) -> np.ndarray | None:
+        """A queued keyframe's landmarks, its images stored first when the tracking thread left that to us."""
+        with self._pending_lock:
+            images = self._unstored.pop(kf_id, None)
+            landmarks = self._pending.get(kf_id)
+        if images is not None:
+            self.mapper.store.add(kf_id, *images)
+        return landmarks
 
     def _restore_torch_threads(self) -> None:
         import torch

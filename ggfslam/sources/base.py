@@ -90,6 +90,7 @@ class LiveSource:
     sets ``sequence`` (a ``LiveSequence``) in ``open``; each frame the run takes is then recorded into it."""
 
     def __init__(self, capacity: int = 2):
+        self.error: Exception | None = None  # what ended the input, when the driver failed
         self.queue = LatestFrames(capacity)
         self.stats = DeliveryStats(dropped=self.queue.dropped)  # the queue's own list: current while it runs
         self.sequence: LiveSequence | None = None
@@ -123,8 +124,6 @@ class LiveSource:
             self.error = e
         finally:
             self.queue.close()
-
-    error: Exception | None = None  # what ended the input, when the driver failed
 
     def stop(self) -> None:
         """End the input: no further frames are delivered; those waiting in the queue still come out."""
