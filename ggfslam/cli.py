@@ -104,7 +104,10 @@ def run(
         _print_result(metrics, out, f"{cfg.name}: {metrics['sequence']['dataset']}")
 
 
-LIVE_TRAIN_WIDTH = 320  # live runs train the map at this width unless the config or --set says otherwise
+# what a live run changes in the defaults (the config file and --set still win): the map must be made in the 60 s
+# after the input, at 320 px with 5 children per anchor (7-Scenes kitchen at 30 Hz: 25.35 dB against 24.73 with
+# 10 children and 23.08 dB at 640 px; benchmarks/bench_live.py)
+LIVE_DEFAULTS = ["mapping.train_width=320", "mapping.n_offsets=5", "mapping.final_seconds=60"]
 
 
 def _live_source(source: str, out: Path, rate: float, queue: int, preload: Optional[bool], fps: float,
@@ -167,24 +170,17 @@ def live(
     host: str = typer.Option("127.0.0.1", help="--view: address to bind (default: this machine only)."),
 ):
     """Run on frames delivered live: a RealSense camera, a folder being filled, or a replay on time; frames that
-    arrive while the system is busy are dropped. Bundle adjustment and mapping run beside tracking; the map trains
-    at 320 px width (--set mapping.train_width=N to change) and for 60 s after the input ends
-    (mapping.final_seconds). Ctrl-C ends the input and the run finishes (outputs written, exit status 0); a second
+    arrive while the system is busy are dropped. Bundle adjustment and mapping run beside tracking; unless the
+    config or --set says otherwise the map trains at 320 px width with 5 children per anchor, and for 60 s after the
+    input ends (mapping.train_width, n_offsets, final_seconds). Ctrl-C ends the input and the run finishes (outputs written, exit status 0); a second
     Ctrl-C stops at once."""
     from ggfslam.config import apply_overrides, config_from_dict, load_config
 
     pre, make_source = _live_source(source, out, rate, queue, preload, fps, width, height, idle_timeout)
     # bundle adjustment and mapping run beside tracking (sequential ones would stall the input at every keyframe)
-    pre += ["backend.concurrent=true", "mapping.concurrent=true", "mapping.realtime=true", "mapping.final_seconds=60"]
-
-    def load(overrides: list[str]):
-        return (load_config(config, overrides) if config is not None
-                else config_from_dict(apply_overrides({"name": "live"}, overrides), "live"))
-
-    cfg = load(pre + set_)
-    if not any(o.startswith("mapping.train_width=") for o in set_) and \
-            (cfg.mapping.train_width is None or cfg.mapping.train_width > LIVE_TRAIN_WIDTH):
-        cfg = load(pre + [f"mapping.train_width={LIVE_TRAIN_WIDTH}"] + set_)
+    pre += ["backend.concurrent=true", "mapping.concurrent=true", "mapping.realtime=true"]
+    cfg = (load_config(config, pre + set_, defaults=LIVE_DEFAULTS) if config is not None
+           else config_from_dict(apply_overrides({"name": "live"}, LIVE_DEFAULTS + pre + set_), "live"))
     from ggfslam import slam
 
     with _live_viewer(view, host, port) as viewer:

@@ -779,8 +779,9 @@ def config_from_dict(data: dict, source: str = "<config>") -> Config:
         raise ConfigError(_format_validation(e, source)) from None
 
 
-def load_config(path: str | Path, overrides: list[str] | None = None) -> Config:
-    """Load a YAML config file, apply ``--set`` overrides and validate."""
+def load_config(path: str | Path, overrides: list[str] | None = None, defaults: list[str] | None = None) -> Config:
+    """Load a YAML config file, apply ``--set`` overrides and validate; ``defaults`` (same syntax) sit beneath the
+    file (a command's own defaults, which the file and the overrides may change)."""
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"{path}: config file not found")
@@ -795,8 +796,16 @@ def load_config(path: str | Path, overrides: list[str] | None = None) -> Config:
         raise ConfigError(f"{path}{where}: not valid YAML ({problem})") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping of sections at the top level")
-    data = apply_overrides(data, overrides or [])
+    data = apply_overrides(_merged(apply_overrides({}, defaults or []), data), overrides or [])
     return config_from_dict(data, str(path))
+
+
+def _merged(base: dict, top: dict) -> dict:
+    """``top`` laid over ``base``, section by section."""
+    out = dict(base)
+    for k, v in top.items():
+        out[k] = _merged(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
 
 
 def save_config(config: Config, path: str | Path) -> None:

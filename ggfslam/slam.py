@@ -241,7 +241,7 @@ def run(config: Config, out_dir: str | Path, overwrite: bool = False, progress: 
             if observer is not None:
                 observer.started(config, dataset, run_dir, st.tracker, st.mapper)
             if source is not None and st.mapper is not None:
-                warm_up_mapping(config, dataset.camera)
+                _warm_up_mapping(config, dataset.camera)
             _track_sequence(config, dataset, run_dir, st, stop, progress, observer, source)
             _finish_sequence(config, st)
             metrics = _write_outputs(config, dataset, run_dir, st)
@@ -338,7 +338,7 @@ def _restore_or_start(config: Config, dataset: RGBDDataset, run_dir: Path, ckpt:
     st.consistent = st.start
 
 
-def warm_up_mapping(config: Config, camera) -> None:
+def _warm_up_mapping(config: Config, camera) -> None:
     """Load the mapper's compiled kernels (seeding, training steps, their losses) on a throwaway keyframe, so that a
     live run's first keyframe does not hold the GIL for seconds loading them while frames arrive (a recording of
     4 s at 8 Hz lost 22 of its first 23 frames that way)."""
@@ -383,7 +383,7 @@ def _dataset_frames(dataset: RGBDDataset, st: _RunState, stop: _StopRequests):
 def _track_sequence(config: Config, dataset: RGBDDataset, run_dir: Path, st: _RunState, stop: _StopRequests,
                     progress: bool | None, observer=None, source=None) -> None:
     """Track every frame from ``st.start`` (training the map on the keyframes), skipping bad frames; with a live
-    ``source`` (``sources.replay.ReplaySource``), the frames it delivers, until it ends or a stop is requested
+    ``source`` (``sources.base.LiveSource``), the frames it delivers, until it ends or a stop is requested
     (which ends the input: the run then finishes as usual)."""
     # a live run cannot be resumed (its input is gone): no checkpoints while frames arrive (each stalls tracking
     # for ~0.6 s on the 7-Scenes kitchen, ~18 frames at 30 Hz); the finished run still writes one

@@ -79,3 +79,15 @@ def test_every_field_is_documented():
     rows = describe_fields()
     undocumented = [key for key, _, doc in rows if not doc.strip()]
     assert not undocumented, undocumented
+
+
+def test_a_commands_defaults_sit_beneath_the_file_and_the_overrides(tmp_path):
+    from ggfslam.config import load_config
+
+    path = tmp_path / "c.yaml"
+    path.write_text("name: c\ndataset: {kind: synthetic}\nmapping: {n_offsets: 7}\n")
+    defaults = ["mapping.n_offsets=5", "mapping.train_width=320"]
+    c = load_config(path, [], defaults=defaults)
+    assert (c.mapping.n_offsets, c.mapping.train_width) == (7, 320)  # the file wins over the default
+    c = load_config(path, ["mapping.n_offsets=3", "mapping.train_width=160"], defaults=defaults)
+    assert (c.mapping.n_offsets, c.mapping.train_width) == (3, 160)  # and --set over both

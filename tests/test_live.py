@@ -37,6 +37,8 @@ def test_a_fast_replay_drops_frames_and_the_run_folder_accounts_for_every_one(ca
     m = json.loads((out / "metrics.json").read_text())
     live = m["live"]
     assert live["frames_received"] == 30 and live["stopped_by"] is None
+    saved = (out / "config.yaml").read_text()  # the live defaults beneath the config; concurrency forced
+    assert "n_offsets: 5" in saved and "train_width: 320" in saved and "realtime: true" in saved
     assert live["frames_dropped"] > 0, live  # 240 Hz is more than this machine tracks
     assert live["frames_processed"] + live["frames_dropped"] + live["frames_skipped"] == 30
     assert 0 < live["latency_ms_p50"] <= live["latency_ms_p95"]
