@@ -45,7 +45,7 @@ def ggfslam(args: list[str]) -> float:
     return time.perf_counter() - t0
 
 
-def summary(run_dir: Path, wall: float) -> dict:
+def summary(run_dir: Path, wall: float | None) -> dict:
     """The figures of one run folder."""
     m = json.loads((run_dir / "metrics.json").read_text())
     r, stages = m.get("rendering", {}), m["system"]["stages"]
@@ -53,7 +53,7 @@ def summary(run_dir: Path, wall: float) -> dict:
            "psnr_resolution": f"{r.get('width')}x{r.get('height')}", "depth_l1_cm": r.get("depth_l1_cm"),
            "tracking_fps": m["tracking"]["fps"], "mapper_steps": m.get("mapping", {}).get("iterations"),
            "final_refinement_s": stages.get("final_refinement", {}).get("seconds"),
-           "wall_s": round(wall, 1), "peak_rss_mb": m["system"]["peak_rss_mb"]}
+           "wall_s": None if wall is None else round(wall, 1), "peak_rss_mb": m["system"]["peak_rss_mb"]}
     if "live" in m:
         lv = m["live"]
         out.update(frames_received=lv["frames_received"], frames_processed=lv["frames_processed"],
@@ -78,7 +78,7 @@ def main() -> None:
     result = {"config": args.config, "overrides": args.overrides, "queue": args.queue, "machine": {
         "cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()}}
     if args.offline is not None:
-        result["offline"] = summary(args.offline, float("nan"))
+        result["offline"] = summary(args.offline, None)
         result["offline"]["run"] = str(args.offline)
     else:
         log("offline run")

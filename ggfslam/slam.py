@@ -472,6 +472,9 @@ def _finish_sequence(config: Config, st: _RunState) -> None:
         st.tracker.finish()  # the backend's queued keyframes: their corrections belong in the trajectory
         if st.worker is not None:
             st.worker.finish()
+    # tracking, the backend and the queued keyframes are done: the state is whole again, so a stop during the final
+    # refinement (a live run's second Ctrl-C) saves a checkpoint of the whole run
+    st.consistent = st.n
     if st.mapper is not None:
         with st.timer("final_refinement"):
             st.mapper.sync_poses()  # the final global BA may have moved keyframes

@@ -230,3 +230,51 @@ def test_a_concurrent_backend_solves_in_its_process_and_stops_it_when_finished()
     s = backend.summary()
     assert s["ba_runs"] == 1 and s["solved_in_process"] == 1 and "solver_fallback" not in s
     assert backend.stats.outliers_removed == 1
+
+
+def test_the_solver_process_solves_pose_graphs_like_this_process():
+    from ggfslam.backend.pose_graph import PoseEdge, optimize_pose_graph
+    from ggfslam.backend.solver_process import SolverProcess
+
+    rng = np.random.default_rng(9)
+    truth = {k: make_pose(Rotation.from_euler("z", 20 * k, degrees=True).as_matrix(), [np.cos(k), np.sin(k), 0.0])
+             for k in range(8)}
+    noisy = {k: T @ make_pose(Rotation.from_rotvec(rng.normal(scale=0.02, size=3)).as_matrix(),
+                               rng.normal(scale=0.03, size=3)) for k, T in truth.items()}
+    edges = [PoseEdge(a, a + 1, invert(truth[a]) @ truth[a + 1]) for a in range(7)]
+    edges.append(PoseEdge(0, 7, invert(truth[0]) @ truth[7], kind="loop"))
+    here = optimize_pose_graph(noisy, edges, {0}, True)
+    solver = SolverProcess()
+    try:
+        there = solver.pose_graph(noisy, edges, {0}, True)
+    finally:
+        solver.close()
+    assert solver.solved == 1 and there.keys() == here.keys()
+    for k in here:
+        np.testing.assert_allclose(there[k], here[k], atol=1e-12)
+
+
+def test_a_keyframe_made_while_the_loop_is_solved_moves_with_the_one_before_it():
+    from ggfslam.backend.loop_closure import LoopResult
+    from ggfslam.backend.loop_correction import close_loop
+
+    smap, truth, _ = _build_map(np.random.default_rng(10))
+    late = {}
+    shift = make_pose(Rotation.from_euler("z", 5, degrees=True).as_matrix(), [0.1, 0.0, 0.0])
+
+    def solve(poses, edges, fixed, robust):  # the pose graph "moves" keyframes 1..3; meanwhile tracking adds 4
+        kf3 = smap.keyframes[3]
+        kf = KeyFrame(4, 40, 4.0, kf3.T_wc @ make_pose(np.eye(3), [0.1, 0, 0]), kf3.features,
+                      np.full(len(kf3.landmark_ids), -1, np.int64))
+        smap.add_keyframe(kf)
+        late["before"] = kf.T_wc.copy()
+        return {k: (T if k == 0 else shift @ T) for k, T in poses.items()}
+
+    loop = LoopResult(3, 0, invert(truth[0]) @ truth[3], 50, np.zeros((0, 2), np.int64), 0.5)
+    old3 = smap.keyframes[3].T_wc.copy()
+    new = close_loop(smap, loop, solve=solve)
+    assert 4 in new
+    # its pose relative to keyframe 3 is what it was when it was made
+    np.testing.assert_allclose(invert(smap.keyframes[3].T_wc) @ smap.keyframes[4].T_wc,
+                               invert(old3) @ late["before"], atol=1e-12)
+    np.testing.assert_allclose(smap.keyframes[3].T_wc, shift @ old3, atol=1e-12)

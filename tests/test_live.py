@@ -96,3 +96,34 @@ def test_ctrl_c_ends_the_input_and_the_run_finishes(tmp_path):
     res = runner.invoke(app, ["render", str(out), "--out", str(tmp_path / "renders")])
     assert res.exit_code == 0, res.output
     assert list((tmp_path / "renders").glob("*_rgb.png"))
+
+
+def test_a_second_ctrl_c_during_the_final_training_saves_a_checkpoint_and_stops(tmp_path):
+    out = tmp_path / "live"
+    env = {**os.environ, "GGFSLAM_CACHE": str(tmp_path / "cache")}
+    cmd = [sys.executable, "-m", "ggfslam.cli", "live", str(CONFIG), "--source", "replay", "--rate", "0.5",
+           "--out", str(out), "--no-progress", *SMALL, "--set", "mapping.final_seconds=120"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    log = out / "log.txt"
+    try:
+        deadline = time.time() + 300
+        while not (log.is_file() and "decoding" in log.read_text()):
+            assert time.time() < deadline and proc.poll() is None, proc.stdout.read() if proc.poll() else "slow"
+            time.sleep(0.2)
+        time.sleep(1.5)
+        proc.send_signal(signal.SIGINT)  # ends the input
+        while "final global BA" not in log.read_text():  # the backend has finished: the final training follows
+            assert time.time() < deadline and proc.poll() is None, "slow"
+            time.sleep(0.2)
+        time.sleep(2.0)
+        started = time.time()
+        proc.send_signal(signal.SIGINT)  # stops at once, saving a checkpoint
+        output, _ = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, output[-3000:]
+    assert time.time() - started < 60  # not the 120 s of final training
+    info = json.loads((out / "run.json").read_text())
+    assert info["status"] == "interrupted" and "checkpoint" in info["saved"], info
+    assert (out / "checkpoint.pt").is_file() and (out / "gaussians.ply").is_file()

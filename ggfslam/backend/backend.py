@@ -173,7 +173,7 @@ class Backend:
         if loop is None:
             return
         t0 = time.perf_counter()
-        new = close_loop(self.map, loop)
+        new = close_loop(self.map, loop, **({"solve": self._solver.pose_graph} if self._solver is not None else {}))
         self.loop_detector.update_poses(new)
         self.stats.loops.append({"query": loop.query_id, "match": loop.match_id, "inliers": loop.inliers,
                                  "seconds": time.perf_counter() - t0})

@@ -53,19 +53,31 @@ def loop_covariance(loop: LoopResult) -> np.ndarray:
     return cov if loop.covariance is None else cov + loop.covariance
 
 
-def close_loop(smap: SlamMap, loop: LoopResult) -> dict[int, np.ndarray]:
+def close_loop(smap: SlamMap, loop: LoopResult, solve=optimize_pose_graph) -> dict[int, np.ndarray]:
     """Correct every keyframe and landmark for a verified loop and fuse the points seen on both sides.
 
-    The matched (older) keyframe is held fixed: its pose predates the drift the loop removes.
+    The matched (older) keyframe is held fixed: its pose predates the drift the loop removes. The pose graph is
+    solved (``solve``: ``optimize_pose_graph`` or a ``SolverProcess``'s ``pose_graph``) outside the map's lock, so
+    tracking goes on meanwhile; keyframes it made meanwhile move with the keyframe before them.
     Returns the new keyframe poses.
     """
     with smap.lock:
         old = smap.poses()
+        edges = loop_edges(smap, loop)
         # the first loop has no other loop to disagree with: after verification it is trusted (as ORB-SLAM does);
         # later ones go through the robust solve, which drops a loop edge the others contradict
-        new = optimize_pose_graph(old, loop_edges(smap, loop), fixed_ids={loop.match_id}, robust=bool(smap.loops))
+        robust = bool(smap.loops)
+    new = solve(old, edges, {loop.match_id}, robust)
+    with smap.lock:
+        for k, T in sorted(smap.poses().items()):
+            if k not in new:  # made while the graph was solved: keep its pose relative to its predecessor
+                before = max((j for j in new if j < k), default=None)
+                if before is None:
+                    continue
+                old[k], new[k] = T, new[before] @ invert(old[before]) @ T
         for k, T in new.items():
-            smap.keyframes[k].T_wc = T
+            if k in smap.keyframes:
+                smap.keyframes[k].T_wc = T
         smap.loops.append((loop.match_id, loop.query_id, loop.T_match_query.copy(), loop_covariance(loop)))
         ids = smap.alive_ids()
         smap.positions[ids] = correct_points(smap.positions[ids], smap.created_by[ids], old, new)

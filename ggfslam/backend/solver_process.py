@@ -1,4 +1,5 @@
-"""Bundle adjustments solved in a child process, so that tracking runs while GTSAM optimizes.
+"""Bundle adjustments (and loop closures' pose graphs) solved in a child process, so that tracking runs while
+GTSAM optimizes.
 
 GTSAM's Python bindings hold the GIL for the whole of an optimization: a backend thread that optimizes stalls the
 tracking thread beside it (benchmarks/bench_backend_gil.py: a Python loop took 1.50 s alone, 8.53 s beside a BA
@@ -47,7 +48,8 @@ class SolverError(RuntimeError):
 
 
 class SolverProcess:
-    """A child process that solves ``local_ba.BAProblem``s; ``solve`` blocks the calling thread without the GIL.
+    """A child process that solves ``local_ba.BAProblem``s (``solve``) and pose graphs (``pose_graph``); a call
+    blocks the calling thread without the GIL.
 
     If the child dies (killed, out of memory), the problem in flight and every later one are solved in this process,
     after one warning: the run goes on, as it would without a solver process."""
@@ -65,22 +67,27 @@ class SolverProcess:
         return self._proc is not None and self._proc.poll() is None
 
     def solve(self, problem):
-        """The ``BASolution`` of a problem, from the child (or in this process once the child is gone)."""
-        from ggfslam.backend.local_ba import solve
+        """The ``BASolution`` of a ``BAProblem``, from the child (or in this process once the child is gone)."""
+        return self._call("bundle_adjustment", problem)
 
+    def pose_graph(self, poses: dict, edges: list, fixed_ids: set, robust: bool) -> dict:
+        """``pose_graph.optimize_pose_graph``'s poses, from the child (or in this process once it is gone)."""
+        return self._call("pose_graph", poses, edges, fixed_ids, robust)
+
+    def _call(self, name: str, *args):
         with self._lock:
             if self._proc is not None:
                 try:
-                    _send(self._proc.stdin, problem)
+                    _send(self._proc.stdin, (name, args))
                     status, payload = _receive(self._proc.stdout)
                 except (EOFError, BrokenPipeError, OSError) as e:
                     self._lost(e)
                 else:
                     if status == "error":
-                        raise SolverError(f"bundle adjustment failed in the solver process:\n{payload}")
+                        raise SolverError(f"{name.replace('_', ' ')} failed in the solver process:\n{payload}")
                     self.solved += 1
                     return payload
-        return solve(problem)
+        return _FUNCTIONS[name]()(*args)
 
     def _lost(self, error: BaseException) -> None:
         code = self._proc.wait(timeout=5) if self._proc.poll() is None else self._proc.returncode
@@ -115,8 +122,23 @@ class SolverProcess:
             proc.kill()
 
 
+def _solve_ba():
+    from ggfslam.backend.local_ba import solve
+
+    return solve
+
+
+def _solve_pose_graph():
+    from ggfslam.backend.pose_graph import optimize_pose_graph
+
+    return optimize_pose_graph
+
+
+_FUNCTIONS = {"bundle_adjustment": _solve_ba, "pose_graph": _solve_pose_graph}  # name -> (import on first use)
+
+
 def _serve() -> None:
-    """The child's loop: a problem in, ("ok", solution) or ("error", traceback) out, until stdin closes."""
+    """The child's loop: (name, args) in, ("ok", result) or ("error", traceback) out, until stdin closes."""
     import os
     import signal
 
@@ -124,15 +146,13 @@ def _serve() -> None:
     out = os.fdopen(os.dup(sys.stdout.fileno()), "wb")
     os.dup2(sys.stderr.fileno(), sys.stdout.fileno())  # a stray print must not corrupt the message stream
     inp = sys.stdin.buffer
-    from ggfslam.backend.local_ba import solve
-
     while True:
         try:
-            problem = _receive(inp)
+            name, args = _receive(inp)
         except EOFError:
             return
         try:
-            reply = ("ok", solve(problem))
+            reply = ("ok", _FUNCTIONS[name]()(*args))
         except Exception:  # noqa: BLE001 - the parent raises it with the child's traceback
             reply = ("error", traceback.format_exc())
         _send(out, reply)
