@@ -224,6 +224,22 @@ def test_concurrent_worker_trains_every_keyframe(sequence):
     assert torch.get_num_threads() == threads  # the final refinement gets the cores back
 
 
+def test_a_realtime_worker_stores_off_the_caller_and_only_seeds_what_waits_at_the_end(sequence):
+    ds, gt = sequence, sequence.gt_poses
+    poses = {}
+    m = _mapper(ds, poses, iterations_per_keyframe=400, idle_training=False)
+    w = MappingWorker(m, concurrent=True, threads=1, realtime=True)
+    for kf, fi in enumerate((0, 10, 20)):
+        poses[kf] = gt[fi]
+        f = ds[fi]
+        w.submit(kf, fi, f.rgb, f.depth)
+    pending = w.pending()  # a checkpoint now: every queued keyframe's images are in the store
+    assert set(m.store.ids()) == {0, 1, 2} and set(pending) <= {0, 1, 2}
+    w.finish()  # at once: the focused training in progress is cut short, what still waits is only seeded
+    assert sorted(m.anchor_poses) == [0, 1, 2] and w.pending() == {}
+    assert m.iteration < 400  # far from one keyframe's 400 focused steps, let alone three
+
+
 def test_mapping_needs_the_orb_tracker():
     with pytest.raises(ConfigError, match="mapping.enabled"):
         config_from_dict({"dataset": {"kind": "synthetic"}, "tracking": {"method": "o3d_odometry"}}, "t")

@@ -74,8 +74,12 @@ class MappingWorker:
         self._queue.put(kf_id)
 
     def pending(self) -> dict[int, np.ndarray | None]:
-        """Keyframes queued or in training, not yet done (id -> landmarks)."""
+        """Keyframes queued or in training, not yet done (id -> landmarks); their images are stored first (a
+        checkpoint re-queues them on resume, from the store)."""
         with self._pending_lock:
+            while self._unstored:
+                kf_id, images = self._unstored.popitem()
+                self.mapper.store.add(kf_id, *images)
             return dict(self._pending)
 
     def _run(self) -> None:
@@ -131,12 +135,11 @@ class MappingWorker:
 
     def _take(self, kf_id: int) -> np.ndarray | None:
         """A queued keyframe's landmarks, its images stored first when the tracking thread left that to us."""
-        with self._pending_lock:
+        with self._pending_lock:  # held while storing: a checkpoint (pending) must not miss the images
             images = self._unstored.pop(kf_id, None)
-            landmarks = self._pending.get(kf_id)
-        if images is not None:
-            self.mapper.store.add(kf_id, *images)
-        return landmarks
+            if images is not None:
+                self.mapper.store.add(kf_id, *images)
+            return self._pending.get(kf_id)
 
     def _restore_torch_threads(self) -> None:
         import torch

@@ -227,7 +227,6 @@ class LiveSequence:
         from ggfslam.data.imageio import read_depth, read_rgb
 
         if i not in self._files:
-            raise DatasetError(self.folder or self.name, f"frame {i} was not recorded (dropped while live, or "
-                                                         "recording off)")
+            raise DatasetError(self.folder or self.name, f"frame {i} was not recorded (it was dropped while live)")
         rgb, depth = self._files[i]
         return Frame(i, self._stamps[i], read_rgb(rgb), read_depth(depth, self.depth_scale))
