@@ -151,7 +151,7 @@ class _RunState:
     rss: list = field(default_factory=list)  # (frames done, MiB): memory against length
     skipped: list[dict] = field(default_factory=list)  # bad frames passed over: {"index", "error"}
     dropped: list[int] = field(default_factory=list)  # live input: frames that arrived while the system was busy
-    live: dict | None = None  # live input: latency_ms per processed frame, received, stopped_by
+    live: dict | None = None  # live input: latency_ms per processed frame, stopped_by, source
     start: int = 0  # first frame this invocation tracks
     frame: int = 0  # the frame being processed
     consistent: int | None = None  # frames [0, consistent) are done and the state is whole (None: mid-update)
@@ -231,7 +231,7 @@ def run(config: Config, out_dir: str | Path, overwrite: bool = False, progress: 
     handler = _attach_log(run_dir)
     st = _RunState(len(dataset))
     if source is not None:
-        st.live = {"latency_ms": [], "received": 0, "stopped_by": None, "source": source.describe()}
+        st.live = {"latency_ms": [], "stopped_by": None, "source": source.describe()}
     try:
         with _StopRequests() as stop:
             log.info("run %s on %s", config.name, dataset.describe())
@@ -365,7 +365,7 @@ def _warm_up_mapping(config: Config, camera) -> None:
 def _dataset_frames(dataset: RGBDDataset, st: _RunState, stop: _StopRequests):
     """Arrivals of a run read from disk, one after the other from ``st.start`` (no clock, nothing dropped); a stop
     request ends the run before the next frame is read (the frame being tracked is finished first)."""
-    from ggfslam.sources.replay import Arrival
+    from ggfslam.sources.base import Arrival
 
     for i in range(st.start, st.n):
         st.frame, st.consistent = i, i
@@ -436,7 +436,7 @@ def _track_sequence(config: Config, dataset: RGBDDataset, run_dir: Path, st: _Ru
     if source is not None:
         source.close()  # the recording is complete before the outputs read it back
         _note_dropped(dataset, st, source, bar, task)
-        st.live["received"] = st.n = source.stats.received  # a sensor's sequence is as long as what it sent
+        st.n = source.stats.received  # a live sequence is as long as what arrived (a sensor's, a stopped replay's)
         if source.error is not None and not st.live["stopped_by"]:
             st.live["stopped_by"] = f"input error: {source.error}"
     stop.tracking = False
@@ -548,7 +548,7 @@ def _live_metrics(st: _RunState) -> dict:
     """metrics.json ``live``: what arrived, what was processed and dropped, arrival-to-pose latency."""
     lat = np.asarray(st.live["latency_ms"], np.float64)
     processed = len(lat)
-    return {"source": st.live["source"], "frames_received": st.live["received"], "frames_processed": processed,
+    return {"source": st.live["source"], "frames_received": st.n, "frames_processed": processed,
             "frames_dropped": len(st.dropped), "frames_skipped": len(st.skipped),
             "latency_ms_p50": float(np.percentile(lat, 50)) if processed else None,
             "latency_ms_p95": float(np.percentile(lat, 95)) if processed else None,

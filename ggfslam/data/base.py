@@ -120,12 +120,7 @@ class RGBDDataset(ABC):
         raw = int(self.indices[i])
         rgb, depth, name = self._load(raw)
         raw_cam = self._raw_camera()
-        if rgb.shape[:2] != (raw_cam.height, raw_cam.width):
-            raise DatasetError(name, f"colour image is {rgb.shape[1]}x{rgb.shape[0]}, expected "
-                                     f"{raw_cam.width}x{raw_cam.height} like the rest of the sequence")
-        if depth.shape != rgb.shape[:2]:
-            raise DatasetError(name, f"depth image is {depth.shape[1]}x{depth.shape[0]} but colour is "
-                                     f"{rgb.shape[1]}x{rgb.shape[0]}")
+        check_frame_shapes(name, rgb, depth, raw_cam)
         if self._registration is not None:
             depth = register_depth(depth, self._registration[0], (raw_cam.fx, raw_cam.fy, raw_cam.cx, raw_cam.cy),
                                    self._registration[1], raw_cam.width, raw_cam.height)
@@ -152,6 +147,16 @@ class RGBDDataset(ABC):
         """One line naming the sequence, its size and resolution."""
         cam = self.camera
         return f"{type(self).__name__}({self.root}, {len(self)} frames, {cam.width}x{cam.height})"
+
+
+def check_frame_shapes(name: str, rgb: np.ndarray, depth: np.ndarray, camera: Camera) -> None:
+    """Raise DatasetError (naming ``name``) unless colour [H, W, 3] has the camera's size and depth [H, W] colour's."""
+    if rgb.shape[:2] != (camera.height, camera.width):
+        raise DatasetError(name, f"colour image is {rgb.shape[1]}x{rgb.shape[0]}, expected "
+                                 f"{camera.width}x{camera.height} like the rest of the sequence")
+    if depth.shape != rgb.shape[:2]:
+        raise DatasetError(name, f"depth image is {depth.shape[1]}x{depth.shape[0]} but colour is "
+                                 f"{rgb.shape[1]}x{rgb.shape[0]}")
 
 
 class ImageFileDataset(RGBDDataset):

@@ -23,6 +23,17 @@ def _by_stem(folder: Path, suffixes: tuple[str, ...]) -> dict[str, Path]:
     return out
 
 
+def folder_camera(root: Path, camera: Camera | None) -> Camera:
+    """``camera`` if given, else the intrinsics and depth scale of ``root/camera.yaml``."""
+    if camera is not None:
+        return camera
+    yaml_path = root / CAMERA_FILE
+    if not yaml_path.is_file():
+        raise DatasetError(yaml_path, "no intrinsics: pass a Camera (with depth_scale) or write this file (or set "
+                                      "dataset.camera, with its depth_scale: raw depth units per metre)")
+    return read_camera_yaml(yaml_path)
+
+
 class ImageFolderDataset(ImageFileDataset):
     """Frames ``<rgb_dir>/<name>.<png|jpg|...>`` with depth ``<depth_dir>/<name>.png``, in natural name order.
 
@@ -45,12 +56,7 @@ class ImageFolderDataset(ImageFileDataset):
         super().__init__(root, start=start, stop=stop, stride=stride, resize=resize)
         if not fps > 0:
             raise DatasetError(self.root, f"fps must be > 0, got {fps}")
-        if camera is None:
-            yaml_path = self.root / CAMERA_FILE
-            if not yaml_path.is_file():
-                raise DatasetError(yaml_path, "no intrinsics: pass a Camera (with depth_scale) or write this file")
-            camera = read_camera_yaml(yaml_path)
-        self._cam = camera
+        self._cam = folder_camera(self.root, camera)
         colour_dir = require_dir(self.root / rgb_dir, "colour image")
         depth_folder = require_dir(self.root / depth_dir, "depth image")
         colour = _by_stem(colour_dir, COLOUR_SUFFIXES)

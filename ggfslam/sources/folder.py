@@ -15,7 +15,8 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from ggfslam.data.folder import COLOUR_SUFFIXES
+from ggfslam.data.base import check_frame_shapes
+from ggfslam.data.folder import COLOUR_SUFFIXES, folder_camera
 from ggfslam.data.imageio import read_depth, read_rgb
 from ggfslam.data.paths import natural_key
 from ggfslam.data.types import Frame
@@ -44,20 +45,12 @@ class FolderSource(LiveSource):
     def open(self, config, out_dir: Path):
         """The folder's camera; the run's dataset becomes the folder (read as kind ``folder`` afterwards)."""
         from ggfslam.config import DatasetConfig
-        from ggfslam.data.camera_file import CAMERA_FILE, read_camera_yaml
         from ggfslam.data.sources import camera_from_config
 
         if not self.path.is_dir():
             raise SourceError(f"{self.path}: folder to watch not found (create it, or start the program that "
                               "fills it first)")
-        camera = camera_from_config(config.dataset)
-        if camera is None:
-            yaml_path = self.path / CAMERA_FILE
-            if not yaml_path.is_file():
-                raise SourceError(f"{yaml_path}: no intrinsics; write this file or set dataset.camera "
-                                  "(with its depth_scale, raw depth units per metre)")
-            camera = read_camera_yaml(yaml_path)
-        self.camera = camera
+        camera = self.camera = folder_camera(self.path, camera_from_config(config.dataset))
         for sub in ("rgb", "depth"):
             (self.path / sub).mkdir(exist_ok=True)  # the producer may not have made them yet
         self.sequence = LiveSequence(camera, f"folder {self.path}", folder=None, depth_scale=camera.depth_scale)
@@ -108,13 +101,9 @@ class FolderSource(LiveSource):
                 i = len(self.sequence)
                 self.sequence.add_stamp(i / self.fps, (rgb_path, depth_path))
                 try:
-                    frame, error = Frame(i, i / self.fps, read_rgb(rgb_path),
-                                         read_depth(depth_path, self.camera.depth_scale), name=str(rgb_path)), None
-                    if frame.rgb.shape[:2] != (self.camera.height, self.camera.width) or \
-                            frame.depth.shape != frame.rgb.shape[:2]:
-                        raise DatasetError(rgb_path, f"frame is {frame.rgb.shape[1]}x{frame.rgb.shape[0]} (depth "
-                                           f"{frame.depth.shape[1]}x{frame.depth.shape[0]}), the camera "
-                                           f"{self.camera.width}x{self.camera.height}")
+                    rgb, depth = read_rgb(rgb_path), read_depth(depth_path, self.camera.depth_scale)
+                    check_frame_shapes(str(rgb_path), rgb, depth, self.camera)
+                    frame, error = Frame(i, i / self.fps, rgb, depth, name=str(rgb_path)), None
                 except DatasetError as e:
                     frame, error = None, e
                 self._deliver(i, time.perf_counter(), now, frame, error)
