@@ -240,8 +240,8 @@ def run(config: Config, out_dir: str | Path, overwrite: bool = False, progress: 
                 write_json(run_dir / RUN_INFO_FILE, {**read_json(run_dir / RUN_INFO_FILE), "live": source.describe()})
             if observer is not None:
                 observer.started(config, dataset, run_dir, st.tracker, st.mapper)
-            if source is not None and st.mapper is not None:
-                _warm_up_mapping(config, dataset.camera)
+            if source is not None:
+                _warm_up_kernels(config, dataset.camera, st.mapper is not None)
             _track_sequence(config, dataset, run_dir, st, stop, progress, observer, source)
             _finish_sequence(config, st)
             metrics = _write_outputs(config, dataset, run_dir, st)
@@ -338,28 +338,39 @@ def _restore_or_start(config: Config, dataset: RGBDDataset, run_dir: Path, ckpt:
     st.consistent = st.start
 
 
-def _warm_up_mapping(config: Config, camera) -> None:
-    """Load the mapper's compiled kernels (seeding, training steps, their losses) on a throwaway keyframe, so that a
-    live run's first keyframe does not hold the GIL for seconds loading them while frames arrive (a recording of
-    4 s at 8 Hz lost 22 of its first 23 frames that way)."""
+def _warm_up_kernels(config: Config, camera, mapping: bool) -> None:
+    """Load the compiled kernels of tracking (projection matching, pose refinement) and, with ``mapping``, of the
+    mapper (seeding, training steps, their losses, on a throwaway keyframe) before a live input starts: loading or,
+    on a fresh install, compiling them holds the GIL for seconds (a recording of 4 s at 8 Hz lost 22 of its first 23
+    frames while the first keyframe's seeding loaded the mapper's)."""
     import tempfile
 
-    from ggfslam.mapping.mapper import Mapper
-    from ggfslam.render.types import RenderSettings
+    from ggfslam.frontend.matching import match_projected
+    from ggfslam.frontend.pose_refine import refine_pose
 
     t0 = time.perf_counter()
     rng = np.random.default_rng(0)
-    h, w = camera.height, camera.width
-    rgb = rng.random((h, w, 3), dtype=np.float32)  # [H, W, 3]
-    depth = np.full((h, w), 2.0, np.float32) + np.linspace(0, 0.5, w, dtype=np.float32)  # [H, W] a tilted wall
-    with tempfile.TemporaryDirectory(prefix="ggfslam-warmup-") as tmp:
-        pose = np.eye(4)
-        m = Mapper(config.mapping, camera, RenderSettings(backend=config.render.backend), lambda: {0: pose}, tmp,
-                   config.runtime.seed, ggf=config.ggf)
-        m.store.add(0, 0, rgb, depth)
-        m.seed_keyframe(0)
-        m.train(2, focus=0)
-    log.info("mapping kernels loaded in %.1f s, before the input starts", time.perf_counter() - t0)
+    pts = rng.uniform([-1, -1, 2], [1, 1, 3], (16, 3))  # [16, 3] in front of the camera
+    uv = np.column_stack([camera.fx * pts[:, 0] / pts[:, 2] + camera.cx, camera.fy * pts[:, 1] / pts[:, 2] + camera.cy])
+    desc = rng.integers(0, 256, (16, 32), dtype=np.uint8)
+    level = np.zeros(16, np.int64)
+    match_projected(uv, desc, level, uv, desc, level, 5.0, np.ones(1), 50, 0.9)
+    refine_pose(np.eye(4), pts, uv, pts[:, 2], np.ones(16), camera, config.tracking.virtual_baseline)
+    if mapping:
+        from ggfslam.mapping.mapper import Mapper
+        from ggfslam.render.types import RenderSettings
+
+        h, w = camera.height, camera.width
+        rgb = rng.random((h, w, 3), dtype=np.float32)  # [H, W, 3]
+        depth = np.full((h, w), 2.0, np.float32) + np.linspace(0, 0.5, w, dtype=np.float32)  # [H, W] a tilted wall
+        with tempfile.TemporaryDirectory(prefix="ggfslam-warmup-") as tmp:
+            pose = np.eye(4)
+            m = Mapper(config.mapping, camera, RenderSettings(backend=config.render.backend), lambda: {0: pose}, tmp,
+                       config.runtime.seed, ggf=config.ggf)
+            m.store.add(0, 0, rgb, depth)
+            m.seed_keyframe(0)
+            m.train(2, focus=0)
+    log.info("kernels loaded in %.1f s, before the input starts", time.perf_counter() - t0)
 
 
 def _dataset_frames(dataset: RGBDDataset, st: _RunState, stop: _StopRequests):

@@ -141,9 +141,10 @@ def test_a_live_run_on_a_folder_being_filled(tmp_path, sequence, monkeypatch):
     out = tmp_path / "run"
 
     def produce():
-        while not (out / "run.json").is_file():  # the run has started (kernels loading, then the watch)
+        log = out / "log.txt"
+        while not (log.is_file() and "kernels loaded" in log.read_text()):  # the watch starts right after
             time.sleep(0.05)
-        time.sleep(1.0)
+        time.sleep(0.5)
         for i in range(len(sequence)):
             _write_frame(root, f"{i:04d}", sequence[i])
             time.sleep(1 / 15)
