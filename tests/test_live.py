@@ -73,10 +73,10 @@ def test_ctrl_c_ends_the_input_and_the_run_finishes(tmp_path):
     cmd = [sys.executable, "-m", "ggfslam.cli", "live", str(CONFIG), "--source", "replay", "--rate", "0.2",
            "--out", str(out), "--no-progress", *SMALL]  # 1 s of sequence at 30 Hz: 5 s of replay
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    log = out / "log.txt"
     try:
         deadline = time.time() + 300
-        while not (out / "run.json").is_file() or json.loads((out / "run.json").read_text()).get("status") != \
-                "running":
+        while not (log.is_file() and "decoding" in log.read_text()):  # the replay starts (kernels are loaded)
             assert time.time() < deadline and proc.poll() is None, proc.stdout.read() if proc.poll() else "slow"
             time.sleep(0.2)
         time.sleep(2.0)  # about 12 of the 30 frames
