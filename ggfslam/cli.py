@@ -1,4 +1,5 @@
-"""Command line: ``ggfslam run | live | demo | eval | render | view | synth | bench | calibrate-depth | config-help``."""
+"""Command line: ``ggfslam run | live | demo | eval | render | view | synth | bench | batch | calibrate-depth |
+config-help``."""
 from __future__ import annotations
 
 import contextlib
@@ -332,15 +333,50 @@ def bench(
                              help="Folder of the runs (<out>/<sequence>/<variant>); finished runs there are reused."),
     variants: str = typer.Option("base,ggf,ggf_gcgr", help="Comma list of variants: base, ggf, ggf_gcgr."),
     set_: list[str] = typer.Option([], "--set", help="Override a config value in every run (repeatable)."),
+    ray: str = typer.Option("local", "--ray", help="As for `ggfslam batch`: local, auto or HOST:PORT."),
+    cpus: Optional[int] = typer.Option(None, "--cpus", help="--ray local: CPUs of the instance (default: all)."),
+    num_cpus: float = typer.Option(2, "--num-cpus", help="CPUs (and threads) of each run (2: one run at a time on "
+                                   "two cores, so frames/s compare across variants)."),
+    retries: int = typer.Option(0, "--retries", help="Run a failed run again up to N times."),
 ):
-    """Ablation of the paper's Table 5: base / +GGF / +GGF+GCGR on each sequence, printed as one table."""
-    from ggfslam.ablation import ablation, format_table
+    """Ablation of the paper's Table 5: base / +GGF / +GGF+GCGR on each sequence, run as a batch plan."""
+    from ggfslam.ablation import ablation_plan, format_table
+    from ggfslam.batch import run_batch
 
     names = [v.strip() for v in variants.split(",") if v.strip()]
-    rows = ablation(configs, out, names, set_)
-    # piped into a log, rich would squeeze the table into 80 columns and cut the sequence names
-    (console if console.is_terminal else Console(width=150)).print(format_table(rows))
-    console.print(f"runs and ablation.json in {out}")
+    plan = ablation_plan(configs, out, names, set_, num_cpus)
+    rows = run_batch(plan, out, ray=ray, retries=retries, cpus=cpus, console=console)
+    _wide(console).print(format_table(rows))
+    console.print(f"runs, results.csv and results.json in {out}")
+
+
+def _wide(c: Console) -> Console:
+    # piped into a log, rich would squeeze a table into 80 columns and cut the names
+    return c if c.is_terminal else Console(width=170)
+
+
+@app.command()
+@user_errors
+def batch(
+    plan: Path = typer.Argument(..., help="Plan file (YAML): sequences, variants, sweeps, seeds; see configs/plans/."),
+    out: Path = typer.Option(..., "--out", "-o", help="Batch folder: one run folder per run, results.csv/json."),
+    ray: str = typer.Option("local", "--ray", help="local (a Ray instance on this machine), auto (the running "
+                            "cluster) or HOST:PORT of a cluster's head."),
+    cpus: Optional[int] = typer.Option(None, "--cpus", help="--ray local: CPUs of the instance (default: all)."),
+    retries: int = typer.Option(0, "--retries", help="Run a failed run again up to N times (from its checkpoint)."),
+):
+    """Run every (sequence, variant, seed) of a plan as Ray tasks and gather the results into one table."""
+    from ggfslam.batch import load_plan, results_table, run_batch
+
+    p = load_plan(plan, out)  # a bad plan fails before Ray starts
+    console.print(f"{p.name}: {len(p.runs)} runs into {out}", highlight=False)
+    rows = run_batch(p, out, ray=ray, retries=retries, cpus=cpus, console=console)
+    _wide(console).print(results_table(rows, title=p.name))
+    failed = sum(r["status"] != "finished" for r in rows)
+    console.print(f"results.csv and results.json in {out}" + (f"; {failed} run(s) failed" if failed else ""),
+                  highlight=False)
+    if failed:
+        raise typer.Exit(1)
 
 
 @app.command("calibrate-depth")

@@ -768,23 +768,27 @@ def apply_overrides(data: dict, overrides: list[str]) -> dict:
     return data
 
 
-def config_from_dict(data: dict, source: str = "<config>") -> Config:
-    """Validate a raw dict into a Config, with one-line errors naming the source and field."""
+def validate_model(model: type[BaseModel], data: Any, source: str) -> BaseModel:
+    """Validate a raw dict into ``model``, with one-line errors naming the source and field."""
     if not isinstance(data, dict):
-        raise ConfigError(f"{source}: expected a mapping of sections at the top level, got {type(data).__name__}")
-    _check_keys(Config, data, "", source)
+        raise ConfigError(f"{source}: expected a mapping at the top level, got {type(data).__name__}")
+    _check_keys(model, data, "", source)
     try:
-        return Config.model_validate(data)
+        return model.model_validate(data)
     except ValidationError as e:
         raise ConfigError(_format_validation(e, source)) from None
 
 
-def load_config(path: str | Path, overrides: list[str] | None = None, defaults: list[str] | None = None) -> Config:
-    """Load a YAML config file, apply ``--set`` overrides and validate; ``defaults`` (same syntax) sit beneath the
-    file (a command's own defaults, which the file and the overrides may change)."""
+def config_from_dict(data: dict, source: str = "<config>") -> Config:
+    """Validate a raw dict into a Config, with one-line errors naming the source and field."""
+    return validate_model(Config, data, source)
+
+
+def read_yaml_mapping(path: str | Path, what: str = "config file") -> dict:
+    """The mapping a YAML file holds, with one-line errors naming the file (and line) when it is not one."""
     path = Path(path)
     if not path.is_file():
-        raise ConfigError(f"{path}: config file not found")
+        raise ConfigError(f"{path}: {what} not found")
     try:
         data = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
     except UnicodeDecodeError as e:
@@ -795,9 +799,29 @@ def load_config(path: str | Path, overrides: list[str] | None = None, defaults: 
         problem = " ".join(str(getattr(e, "problem", None) or e).split())  # PyYAML's problems span lines
         raise ConfigError(f"{path}{where}: not valid YAML ({problem})") from None
     if not isinstance(data, dict):
-        raise ConfigError(f"{path}: expected a mapping of sections at the top level")
+        raise ConfigError(f"{path}: expected a mapping at the top level")
+    return data
+
+
+def load_config(path: str | Path, overrides: list[str] | None = None, defaults: list[str] | None = None) -> Config:
+    """Load a YAML config file, apply ``--set`` overrides and validate; ``defaults`` (same syntax) sit beneath the
+    file (a command's own defaults, which the file and the overrides may change)."""
+    data = read_yaml_mapping(path)
     data = apply_overrides(_merged(apply_overrides({}, defaults or []), data), overrides or [])
     return config_from_dict(data, str(path))
+
+
+# settings of how a run is executed, not of what it computes: a run may be resumed or reused under other values
+EXECUTION_KEYS = ("runtime.num_threads", "runtime.progress")
+
+
+def config_differences(a: Config, b: Config) -> list[str]:
+    """Dotted keys whose values differ between two configurations (``EXECUTION_KEYS`` not counted)."""
+    da, db = a.model_dump(mode="json"), b.model_dump(mode="json")
+    diff = [f"{sec}.{k}" for sec in da if isinstance(da[sec], dict)
+            for k in da[sec] if da[sec].get(k) != (db.get(sec) or {}).get(k)]
+    diff += [k for k in da if not isinstance(da[k], dict) and da[k] != db.get(k)]
+    return [k for k in diff if k not in EXECUTION_KEYS]
 
 
 def _merged(base: dict, top: dict) -> dict:

@@ -33,3 +33,7 @@ class RunDirError(GGFSlamError):
 
 class ViewerError(GGFSlamError):
     """The web viewer cannot start (port taken, address not available, viser not installed)."""
+
+
+class BatchError(GGFSlamError):
+    """A batch cannot start (Ray missing or unreachable, a plan asking more than the cluster has, a busy folder)."""

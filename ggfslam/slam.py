@@ -17,7 +17,7 @@ import torch
 
 from ggfslam import __version__
 from ggfslam.atomic import write_text_atomic
-from ggfslam.config import Config, load_config, save_config
+from ggfslam.config import Config, config_differences, load_config, save_config
 from ggfslam.data.base import RGBDDataset
 from ggfslam.data.sources import open_dataset_from_config
 from ggfslam.data.trajectory_io import read_tum_trajectory, write_tum_trajectory
@@ -128,11 +128,7 @@ def _keyframe_landmarks(tracker, kf_id: int) -> np.ndarray:
 
 
 def _check_resume_config(config: Config, run_dir: Path) -> None:
-    saved = load_config(run_dir / CONFIG_FILE)
-    a, b = saved.model_dump(), config.model_dump()
-    diff = [f"{sec}.{k}" for sec in a if isinstance(a[sec], dict)
-            for k in a[sec] if a[sec].get(k) != b.get(sec, {}).get(k)]
-    diff += [k for k in a if not isinstance(a[k], dict) and a[k] != b.get(k)]
+    diff = config_differences(load_config(run_dir / CONFIG_FILE), config)
     if diff:
         raise RunDirError(f"{run_dir}: --resume with a configuration that differs from the run's {CONFIG_FILE} in "
                           f"{', '.join(diff)}; resume without a config (the saved one is used)")

@@ -41,12 +41,26 @@ def _synthetic_key(syn: SyntheticConfig, camera: Camera | None) -> str:
 
 def generate_synthetic(syn: SyntheticConfig, camera: Camera | None = None, out_dir: Path | None = None) -> Path:
     """Render the configured synthetic sequence in TUM layout, reusing a cached copy when one exists."""
-    from ggfslam.data import synthetic
-
     target = out_dir or cache_root() / "sequences" / _synthetic_key(syn, camera)
-    if (target / "rgb.txt").is_file() and (target / "camera.yaml").is_file():
+    if _complete(target):
         return target
     target.parent.mkdir(parents=True, exist_ok=True)
+    if out_dir is not None:
+        return _render_synthetic(syn, camera, target)
+    from filelock import FileLock
+
+    # runs started together (a batch's tasks on one node) render the sequence once: the others wait, then read it
+    with FileLock(str(target.parent / f".{target.name}.lock")):
+        return target if _complete(target) else _render_synthetic(syn, camera, target)
+
+
+def _complete(target: Path) -> bool:
+    return (target / "rgb.txt").is_file() and (target / "camera.yaml").is_file()
+
+
+def _render_synthetic(syn: SyntheticConfig, camera: Camera | None, target: Path) -> Path:
+    from ggfslam.data import synthetic
+
     # render into a scratch folder and rename, so an interrupted render never leaves a half sequence
     scratch = Path(tempfile.mkdtemp(prefix=".partial-", dir=target.parent))
     try:
