@@ -369,12 +369,12 @@ def batch(
     from ggfslam.batch import load_plan, results_table, run_batch
 
     p = load_plan(plan, out)  # a bad plan fails before Ray starts
-    console.print(f"{p.name}: {len(p.runs)} runs into {out}", highlight=False)
+    console.print(f"{p.name}: {len(p.runs)} runs into {out}", highlight=False, soft_wrap=True)
     rows = run_batch(p, out, ray=ray, retries=retries, cpus=cpus, console=console)
     _wide(console).print(results_table(rows, title=p.name))
     failed = sum(r["status"] != "finished" for r in rows)
     console.print(f"results.csv and results.json in {out}" + (f"; {failed} run(s) failed" if failed else ""),
-                  highlight=False)
+                  highlight=False, soft_wrap=True)
     if failed:
         raise typer.Exit(1)
 
