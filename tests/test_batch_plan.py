@@ -111,6 +111,8 @@ def test_a_broken_sequence_config_is_its_runs_error_not_the_plans(tmp_path):
     ("sequences: []\n", "sequences: List should have at least 1 item"),
     ("sequences: [../seq/alpha.yaml]\nnum_cpus: 0\n", "num_cpus: Input should be greater than 0"),
     ("sequences: [../seq/alpha.yaml\n", r"p.yaml:\d+: not valid YAML"),
+    ("sequences: [../seq/alpha.yaml]\nrepeats: 2\nseeds: [1, 2]\n", "give repeats or seeds, not both"),
+    ("sequences: [../seq/alpha.yaml]\nvariants: {a b: [], a_b: []}\n", "variant folder name 'a_b' stands for two"),
 ])
 def test_a_bad_plan_fails_with_one_line_naming_the_file_and_field(tmp_path, text, message):
     _configs(tmp_path)

@@ -206,6 +206,14 @@ def build_plan(data: dict, source: str, base: Path, out: Path) -> Plan:
         variants.append((_safe_name(label), vset + pset))
     if pf.seeds is not None and not pf.seeds:
         raise ConfigError(f"{source}: seeds: expected a non-empty list")
+    if pf.seeds is not None and pf.repeats != 1:
+        raise ConfigError(f"{source}: give repeats or seeds, not both")
+    labels = [v for v, _ in variants]
+    twice = sorted({v for v in labels if labels.count(v) > 1})
+    if twice:
+        raise ConfigError(f"{source}: variant folder name {twice[0]!r} stands for two variants; rename one")
+    if len(set(pf.seeds or [])) != len(pf.seeds or []):
+        raise ConfigError(f"{source}: seeds: a seed is listed twice")
     seeds: list[int | None] = list(pf.seeds) if pf.seeds is not None else (
         list(range(pf.repeats)) if pf.repeats > 1 else [None])
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -55,7 +56,7 @@ def _duration(s: float) -> str:
 def _payload(spec: RunSpec) -> dict:
     assert spec.config is not None
     return {"key": spec.key, "run_dir": str(spec.run_dir), "config": spec.config.model_dump(mode="json"),
-            "threads": spec.threads, "cwd": os.getcwd()}
+            "threads": spec.threads, "cwd": os.getcwd(), "command": [*sys.argv, f"[{spec.key}]"]}
 
 
 def _save_traceback(out: Path, row: dict, text: str | None) -> None:

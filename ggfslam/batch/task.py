@@ -6,6 +6,7 @@ process-wide thread counts; it is equally callable in a plain process (tests, de
 from __future__ import annotations
 
 import os
+import sys
 import time
 import traceback
 from pathlib import Path
@@ -67,7 +68,8 @@ def one_line(e: BaseException) -> str:
 
 
 def execute(payload: dict) -> dict:
-    """Run one planned run (``payload``: key, run_dir, config (JSON dict), threads, cwd) and return its outcome:
+    """Run one planned run (``payload``: key, run_dir, config (JSON dict), threads, cwd, command) and return its
+    outcome:
     status ``finished`` or ``failed``, action ``ran``/``resumed``/``skipped``, metrics, error, traceback, threads,
     task_wall_s. An error in the run is an outcome, not an exception; Ctrl-C (a cancelled task) propagates."""
     t0 = time.perf_counter()
@@ -76,6 +78,8 @@ def execute(payload: dict) -> dict:
     try:
         threads = int(payload["threads"])
         out["threads"] = pin_threads(threads)
+        if payload.get("command"):
+            sys.argv = list(payload["command"])  # run.json records the command that asked for the run, not Ray's
         cwd = payload.get("cwd")
         if cwd and Path(cwd).is_dir():
             os.chdir(cwd)  # relative dataset paths in configs are read from where the batch was started
