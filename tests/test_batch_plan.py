@@ -239,3 +239,21 @@ def test_a_synthetic_sequence_wanted_by_several_runs_at_once_is_rendered_once(tm
     assert len(calls) == 1 and len(set(paths)) == 1 and (paths[0] / "rgb.txt").is_file()
     assert [p.name for p in paths[0].parent.iterdir() if p.name.startswith(".partial")] == []
     assert yaml.safe_load((paths[0] / "camera.yaml").read_text())["width"] == 64
+
+
+def test_a_finished_run_with_a_damaged_metrics_file_is_a_failed_row_and_stays_as_it_is(tmp_path):
+    from rich.console import Console
+
+    from ggfslam.batch import run_batch
+
+    _configs(tmp_path)
+    plan = _plan(tmp_path, "sequences: [../seq/alpha.yaml]\n")
+    run = plan.runs[0].run_dir
+    run.mkdir(parents=True)
+    save_config(plan.runs[0].config, run / "config.yaml")
+    (run / "run.json").write_text(json.dumps({"status": "finished"}))
+    (run / "metrics.json").write_text("{not json")
+    (row,) = run_batch(plan, tmp_path / "out", console=Console(file=open(tmp_path / "log.txt", "w")))
+    assert row["status"] == "failed" and "metrics.json:1: not valid JSON" in row["error"]
+    assert (run / "metrics.json").read_text() == "{not json"
+    assert json.loads((tmp_path / "out" / "results.json").read_text())["rows"][0]["status"] == "failed"

@@ -19,7 +19,7 @@ from ggfslam.atomic import write_text_atomic
 from ggfslam.batch.plan import Plan, RunSpec
 from ggfslam.batch.results import make_row, run_line, write_results
 from ggfslam.batch.task import run_state
-from ggfslam.errors import BatchError
+from ggfslam.errors import BatchError, GGFSlamError
 from ggfslam.rundir import METRICS_FILE, read_json
 
 LOCK_FILE = ".batch.lock"
@@ -78,8 +78,8 @@ class _Batch:
         self._bar = None
         self._task = None
 
-    def record(self, spec: RunSpec, row: dict) -> None:
-        """A run has ended (or was sorted out): its row, its line, the counts, the files."""
+    def record(self, spec: RunSpec, row: dict, save: bool = True) -> None:
+        """A run has ended (or was sorted out): its row, its line, the counts, the files (with ``save``)."""
         self.rows[spec.key] = row
         p = self.progress
         if row["status"] == "finished":
@@ -89,7 +89,8 @@ class _Batch:
         index = p.done + p.failed
         line = f"[{index}/{p.total}] {run_line(row)}"
         self.console.print(line, highlight=False, markup=False, soft_wrap=True)
-        self.save()
+        if save:
+            self.save()
         self.refresh()
 
     def save(self) -> None:
@@ -122,15 +123,20 @@ def _sort_runs(batch: _Batch) -> list[RunSpec]:
     todo = []
     for spec in batch.plan.runs:
         if spec.error is not None:
-            batch.record(spec, make_row(spec, "failed", error=spec.error))
+            batch.record(spec, make_row(spec, "failed", error=spec.error), save=False)
             continue
         state, why = run_state(spec.run_dir, spec.config)
-        if state == "conflict":
-            batch.record(spec, make_row(spec, "failed", error=why))
-        elif state == "finished":
-            batch.record(spec, make_row(spec, "finished", "skipped", read_json(spec.run_dir / METRICS_FILE)))
+        if state == "finished":
+            try:
+                row = make_row(spec, "finished", "skipped", read_json(spec.run_dir / METRICS_FILE))
+            except GGFSlamError as e:  # a damaged metrics.json: the folder is left as it is
+                row = make_row(spec, "failed", error=f"{e}; move the run away to run it again")
+            batch.record(spec, row, save=False)
+        elif state == "conflict":
+            batch.record(spec, make_row(spec, "failed", error=why), save=False)
         else:
             todo.append(spec)
+    batch.save()
     return todo
 
 
