@@ -257,3 +257,16 @@ def test_a_finished_run_with_a_damaged_metrics_file_is_a_failed_row_and_stays_as
     assert row["status"] == "failed" and "metrics.json:1: not valid JSON" in row["error"]
     assert (run / "metrics.json").read_text() == "{not json"
     assert json.loads((tmp_path / "out" / "results.json").read_text())["rows"][0]["status"] == "failed"
+
+
+def test_a_folder_of_the_users_is_not_taken_for_a_batch_folder(tmp_path):
+    from ggfslam.batch import run_batch
+    from ggfslam.errors import BatchError
+
+    _configs(tmp_path)
+    plan = _plan(tmp_path, "sequences: [../seq/alpha.yaml]\n", out="mine")
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "results.csv").write_text("my figures")
+    with pytest.raises(BatchError, match="not a batch folder .* and not empty"):
+        run_batch(plan, tmp_path / "mine")
+    assert (tmp_path / "mine" / "results.csv").read_text() == "my figures"

@@ -23,6 +23,7 @@ from ggfslam.errors import BatchError, GGFSlamError
 from ggfslam.rundir import METRICS_FILE, read_json
 
 LOCK_FILE = ".batch.lock"
+PLAN_FILE = "plan.json"  # the plan as resolved by the last invocation
 ERRORS_DIR = "errors"  # full tracebacks of failed runs, one file per run
 CANCEL_GRACE_S = 60.0  # a cancelled run's time to save its checkpoint before it is killed
 
@@ -216,6 +217,10 @@ def run_batch(plan: Plan, out: str | Path, ray: str = "local", retries: int = 0,
     out = Path(out)
     if retries < 0:
         raise BatchError(f"--retries {retries}: expected 0 or more")
+    if out.is_dir() and not (out / PLAN_FILE).is_file() and any(out.iterdir()):
+        # neither a batch folder nor one holding this plan's runs (an earlier `ggfslam bench`): the user's files
+        if not any((out / r.key.split("/")[0]).is_dir() for r in plan.runs):
+            raise BatchError(f"{out}: not a batch folder (no {PLAN_FILE}) and not empty; choose another --out")
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as e:
@@ -226,7 +231,7 @@ def run_batch(plan: Plan, out: str | Path, ray: str = "local", retries: int = 0,
     except Timeout:
         raise BatchError(f"{out}: another ggfslam batch is running in this folder") from None
     try:
-        write_text_atomic(out / "plan.json", json.dumps(plan.spec, indent=1) + "\n")
+        write_text_atomic(out / PLAN_FILE, json.dumps(plan.spec, indent=1) + "\n")
         batch = _Batch(plan, out, console)
         try:
             with batch:
