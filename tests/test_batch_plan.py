@@ -208,6 +208,13 @@ def test_bench_is_the_table5_plan(tmp_path, monkeypatch):
         ablation_plan(configs, tmp_path / "out", ["gcgr"])
 
 
+@pytest.mark.parametrize("name", ["table5.yaml", "example_sweep.yaml"])
+def test_the_shipped_plans_validate(tmp_path, name, monkeypatch):
+    monkeypatch.setenv("GGFSLAM_DATA", str(tmp_path))  # configs name their data through it; not read here
+    plan = load_plan(REPO / "configs" / "plans" / name, tmp_path)
+    assert plan.runs and all(r.error is None for r in plan.runs)
+
+
 def test_the_shipped_example_plan_expands(tmp_path):
     plan = load_plan(REPO / "configs" / "plans" / "example_sweep.yaml", tmp_path)
     assert len(plan.runs) == 8 and all(r.error is None for r in plan.runs)

@@ -8,7 +8,8 @@ from ggfslam.config import (
 )
 from ggfslam.errors import ConfigError
 
-CONFIGS = sorted((Path(__file__).parents[1] / "configs").rglob("*.yaml"))
+# run configurations; configs/plans/ holds batch plans (validated in tests/test_batch_plan.py)
+CONFIGS = sorted(p for p in (Path(__file__).parents[1] / "configs").rglob("*.yaml") if p.parent.name != "plans")
 
 
 def test_configs_folder_has_each_family():

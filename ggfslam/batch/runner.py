@@ -217,7 +217,7 @@ def run_batch(plan: Plan, out: str | Path, ray: str = "local", retries: int = 0,
     out = Path(out)
     if retries < 0:
         raise BatchError(f"--retries {retries}: expected 0 or more")
-    if out.is_dir() and not (out / PLAN_FILE).is_file() and any(out.iterdir()):
+    if out.is_dir() and not (out / PLAN_FILE).is_file() and any(p.name != LOCK_FILE for p in out.iterdir()):
         # neither a batch folder nor one holding this plan's runs (an earlier `ggfslam bench`): the user's files
         if not any((out / r.key.split("/")[0]).is_dir() for r in plan.runs):
             raise BatchError(f"{out}: not a batch folder (no {PLAN_FILE}) and not empty; choose another --out")
