@@ -347,7 +347,16 @@ def bench(
     plan = ablation_plan(configs, out, names, set_, num_cpus)
     rows = run_batch(plan, out, ray=ray, retries=retries, cpus=cpus, console=console)
     _wide(console).print(format_table(rows))
-    console.print(f"runs, results.csv and results.json in {out}")
+    _report_failures(rows, out)
+
+
+def _report_failures(rows: list[dict], out: Path) -> None:
+    """Where the results are; exit status 1 when a run of the batch did not finish."""
+    failed = sum(r["status"] != "finished" for r in rows)
+    console.print(f"runs, results.csv and results.json in {out}" + (f"; {failed} run(s) failed" if failed else ""),
+                  highlight=False, soft_wrap=True)
+    if failed:
+        raise typer.Exit(1)
 
 
 def _wide(c: Console) -> Console:
@@ -372,11 +381,7 @@ def batch(
     console.print(f"{p.name}: {len(p.runs)} runs into {out}", highlight=False, soft_wrap=True)
     rows = run_batch(p, out, ray=ray, retries=retries, cpus=cpus, console=console)
     _wide(console).print(results_table(rows, title=p.name))
-    failed = sum(r["status"] != "finished" for r in rows)
-    console.print(f"results.csv and results.json in {out}" + (f"; {failed} run(s) failed" if failed else ""),
-                  highlight=False, soft_wrap=True)
-    if failed:
-        raise typer.Exit(1)
+    _report_failures(rows, out)
 
 
 @app.command("calibrate-depth")
