@@ -68,12 +68,9 @@ def _unpinned(plan: Path, out: Path, parallel: int) -> tuple[float, list[dict]]:
             if p.returncode != 0:
                 raise SystemExit(f"a run failed ({p.returncode})")
     wall = time.perf_counter() - t0
-    rows = []
-    for spec in runs:
-        m = json.loads((spec.run_dir / "metrics.json").read_text())
-        rows.append({"key": spec.key, "ate_rmse_cm": m["trajectory"]["ate_rmse_cm"], "psnr": m["rendering"]["psnr"],
-                     "wall_s": m["system"]["wall_seconds"]})
-    return wall, rows
+    from ggfslam.batch.results import metric_columns
+
+    return wall, [metric_columns(json.loads((spec.run_dir / "metrics.json").read_text())) for spec in runs]
 
 
 def main() -> None:

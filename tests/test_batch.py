@@ -3,6 +3,7 @@ one, a broken config as one failed row, a second invocation that skips everythin
 resumed from its checkpoint."""
 from __future__ import annotations
 
+import contextlib
 import json
 import shutil
 from pathlib import Path
@@ -31,6 +32,30 @@ def _write_yaml(path: Path, data: dict) -> Path:
     return path
 
 
+def _rows(out: Path) -> list[dict]:
+    """The rows of a batch's results.json."""
+    return json.loads((out / "results.json").read_text())["rows"]
+
+
+@contextlib.contextmanager
+def _one_thread():
+    """torch, numba and OpenCV of this process pinned to one thread, as a batch task with num_cpus 1 has them."""
+    import cv2
+    import numba
+    import torch
+
+    from ggfslam.batch.task import pin_threads
+
+    before = torch.get_num_threads(), numba.get_num_threads(), cv2.getNumThreads()
+    try:
+        pin_threads(1)
+        yield
+    finally:
+        torch.set_num_threads(before[0])
+        numba.set_num_threads(before[1])
+        cv2.setNumThreads(before[2])
+
+
 @pytest.fixture(scope="module")
 def batch_dir(tmp_path_factory):
     """A folder with the plan (4 tiny runs and a broken config), its own sequence cache, and the batch run there
@@ -54,7 +79,7 @@ def test_every_run_has_its_row_and_the_broken_config_one_failed_row(batch_dir):
     root, res = batch_dir
     assert res.exit_code == 1, res.output  # a failed run is reported in the exit code
     assert "5 runs into" in res.output and "1 run(s) failed" in res.output
-    rows = json.loads((root / "out" / "results.json").read_text())["rows"]
+    rows = _rows(root / "out")
     assert [r["sequence"] for r in rows] == [n for n, _ in ENTRIES] + ["broken"]
     assert [r["status"] for r in rows] == ["finished"] * 4 + ["failed"]
     broken = rows[4]
@@ -76,17 +101,11 @@ def test_every_run_has_its_row_and_the_broken_config_one_failed_row(batch_dir):
 
 def test_the_rows_equal_the_same_runs_made_one_by_one(batch_dir, tmp_path):
     from ggfslam import slam
-    from ggfslam.batch.task import pin_threads
     from ggfslam.config import load_config
 
     root, _ = batch_dir
-    rows = json.loads((root / "out" / "results.json").read_text())["rows"]
-    import numba
-    import torch
-
-    before = torch.get_num_threads(), numba.get_num_threads()
-    try:
-        pin_threads(1)
+    rows = _rows(root / "out")
+    with _one_thread():
         for (name, sets), row in zip(ENTRIES, rows):
             cfg = load_config(root / "tiny.yaml", sets + ["runtime.num_threads=1"])
             metrics = slam.run(cfg, tmp_path / name, progress=False)
@@ -96,9 +115,6 @@ def test_the_rows_equal_the_same_runs_made_one_by_one(batch_dir, tmp_path):
             assert row["ate_rmse_cm"] == metrics["trajectory"]["ate_rmse_cm"]
             assert row["psnr"] == metrics["rendering"]["psnr"]
             assert row["depth_l1_cm"] == metrics["rendering"]["depth_l1_cm"]
-    finally:
-        torch.set_num_threads(before[0])
-        numba.set_num_threads(before[1])
 
 
 def test_a_second_invocation_skips_every_finished_run_without_starting_ray(batch_dir, monkeypatch):
@@ -113,7 +129,7 @@ def test_a_second_invocation_skips_every_finished_run_without_starting_ray(batch
     before = {p: p.stat().st_mtime_ns for p in (root / "out").glob("*/default/metrics.json")}
     res = CliRunner().invoke(app, ["batch", str(root / "plan.yaml"), "--out", str(root / "out")])
     assert res.exit_code == 1, res.output
-    rows = json.loads((root / "out" / "results.json").read_text())["rows"]
+    rows = _rows(root / "out")
     assert [r["action"] for r in rows[:4]] == ["skipped"] * 4 and rows[4]["status"] == "failed"
     assert "tiny-800/default: finished earlier: ATE" in res.output
     assert before == {p: p.stat().st_mtime_ns for p in (root / "out").glob("*/default/metrics.json")}
@@ -151,17 +167,8 @@ def test_a_failing_run_is_retried_then_resumed_from_its_checkpoint_by_the_next_i
     assert info["status"] == "finished" and info["resumed_at_frame"] == BAD
     clean = load_config(tmp_path / "damaged.yaml", ["runtime.num_threads=1"])
     shutil.rmtree(tmp_path / "cache", ignore_errors=True)
-    from ggfslam.batch.task import pin_threads
-    import numba
-    import torch
-
-    before = torch.get_num_threads(), numba.get_num_threads()
-    try:
-        pin_threads(1)
+    with _one_thread():
         metrics = slam.run(clean, tmp_path / "clean", progress=False)
-    finally:
-        torch.set_num_threads(before[0])
-        numba.set_num_threads(before[1])
     np.testing.assert_array_equal(np.loadtxt(run / "trajectory.txt"), np.loadtxt(tmp_path / "clean" / "trajectory.txt"))
     assert row["psnr"] == metrics["rendering"]["psnr"]
 
@@ -209,6 +216,17 @@ def _longer_plan(tmp_path: Path) -> Path:
     return _write_yaml(tmp_path / "plan.yaml", {"sequences": ["longer.yaml"], "variants": {"a": [], "b": []}})
 
 
+def _start_longer_batch(tmp_path: Path, monkeypatch) -> tuple[Path, Path, Path, object]:
+    """The two-run plan started as a batch process (one CPU), once its first run has written a checkpoint:
+    (plan, batch folder, first run's folder, process)."""
+    monkeypatch.setenv("GGFSLAM_CACHE", str(tmp_path / "cache"))
+    plan, out = _longer_plan(tmp_path), tmp_path / "out"
+    proc = _batch_process(plan, out)
+    first = out / "longer" / "a"
+    _wait_for(lambda: (first / "checkpoint.pt").is_file(), 180, "the first run's checkpoint")
+    return plan, out, first, proc
+
+
 def _status(run: Path) -> str | None:
     try:
         return json.loads((run / "run.json").read_text()).get("status")
@@ -222,24 +240,20 @@ def test_a_killed_run_is_a_failed_row_the_batch_goes_on_and_the_next_invocation_
     import signal
     import subprocess
 
-    monkeypatch.setenv("GGFSLAM_CACHE", str(tmp_path / "cache"))
-    plan, out = _longer_plan(tmp_path), tmp_path / "out"
-    proc = _batch_process(plan, out)
-    first = out / "longer" / "a"
-    _wait_for(lambda: (first / "checkpoint.pt").is_file(), 180, "the first run's checkpoint")
+    plan, out, first, proc = _start_longer_batch(tmp_path, monkeypatch)
     pids = subprocess.run(["pgrep", "-f", "ray::execute"], capture_output=True, text=True).stdout.split()
     assert pids, "no task process found"
     for pid in pids:
         os.kill(int(pid), signal.SIGKILL)
     text = proc.communicate(timeout=300)[0]
     assert proc.returncode == 1, text
-    rows = {r["variant"]: r for r in json.loads((out / "results.json").read_text())["rows"]}
+    rows = {r["variant"]: r for r in _rows(out)}
     assert rows["a"]["status"] == "failed" and rows["a"]["error"].startswith("killed")
     assert rows["b"]["status"] == "finished"
     proc = _batch_process(plan, out)
     text = proc.communicate(timeout=300)[0]
     assert proc.returncode == 0, text
-    rows = {r["variant"]: r for r in json.loads((out / "results.json").read_text())["rows"]}
+    rows = {r["variant"]: r for r in _rows(out)}
     assert rows["a"]["action"] == "resumed" and rows["b"]["action"] == "skipped"
     assert json.loads((first / "run.json").read_text())["resumed_at_frame"] > 0
 
@@ -248,20 +262,16 @@ def test_a_killed_run_is_a_failed_row_the_batch_goes_on_and_the_next_invocation_
 def test_ctrl_c_stops_the_batch_with_checkpoints_and_the_next_invocation_finishes_it(tmp_path, monkeypatch):
     import signal
 
-    monkeypatch.setenv("GGFSLAM_CACHE", str(tmp_path / "cache"))
-    plan, out = _longer_plan(tmp_path), tmp_path / "out"
-    proc = _batch_process(plan, out)
-    first = out / "longer" / "a"
-    _wait_for(lambda: (first / "checkpoint.pt").is_file(), 180, "the first run's checkpoint")
+    plan, out, first, proc = _start_longer_batch(tmp_path, monkeypatch)
     proc.send_signal(signal.SIGINT)
     text = proc.communicate(timeout=120)[0]
     assert proc.returncode == 130, text
     assert _status(first) == "interrupted" and "stopping: 1 running run(s) save a checkpoint" in text
-    rows = {r["variant"]: r for r in json.loads((out / "results.json").read_text())["rows"]}
+    rows = {r["variant"]: r for r in _rows(out)}
     assert rows["a"]["status"] == "interrupted" and rows["b"]["status"] == "not run"
     proc = _batch_process(plan, out)
     text = proc.communicate(timeout=300)[0]
     assert proc.returncode == 0, text
-    rows = {r["variant"]: r for r in json.loads((out / "results.json").read_text())["rows"]}
+    rows = {r["variant"]: r for r in _rows(out)}
     assert rows["a"]["action"] == "resumed" and rows["b"]["action"] == "ran"
     assert json.loads((first / "run.json").read_text())["resumed_at_frame"] > 0

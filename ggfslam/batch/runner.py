@@ -166,11 +166,7 @@ def _execute(batch: _Batch, todo: list[RunSpec], engine, retries: int) -> None:
             batch.refresh()
             for ref in engine.wait(list(running), timeout=0.5):
                 spec = running.pop(ref)
-                outcome = engine.outcome(ref, spec.key)
-                row = make_row(spec, outcome["status"], outcome.get("action"), outcome.get("metrics"),
-                               outcome.get("error"), attempts[spec.key])
-                row["threads"] = outcome.get("threads")
-                _save_traceback(batch.out, row, outcome.get("traceback"))
+                row = _outcome_row(batch.out, spec, engine.outcome(ref, spec.key), attempts[spec.key])
                 if row["status"] == "failed" and attempts[spec.key] <= retries:
                     batch.console.print(f"{spec.key}: failed (attempt {attempts[spec.key]} of {retries + 1}): "
                                         f"{row['error']}; trying again", highlight=False, markup=False)
@@ -181,11 +177,20 @@ def _execute(batch: _Batch, todo: list[RunSpec], engine, retries: int) -> None:
                 batch.progress.running = len(running)
                 batch.record(spec, row)
     except KeyboardInterrupt:
-        _stop(batch, engine, running)
+        _stop(batch, engine, running, attempts)
         raise
 
 
-def _stop(batch: _Batch, engine, running: dict) -> None:
+def _outcome_row(out: Path, spec: RunSpec, outcome: dict, attempts: int) -> dict:
+    """The row of a task that ended (its traceback saved under ``out``)."""
+    row = make_row(spec, outcome["status"], outcome.get("action"), outcome.get("metrics"), outcome.get("error"),
+                   attempts)
+    row["threads"] = outcome.get("threads")
+    _save_traceback(out, row, outcome.get("traceback"))
+    return row
+
+
+def _stop(batch: _Batch, engine, running: dict, attempts: dict[str, int]) -> None:
     """Ctrl-C: running runs are interrupted (each saves a checkpoint a later invocation resumes from), killed if
     they take longer than ``CANCEL_GRACE_S``; finished runs stay as they are."""
     batch.console.print(f"stopping: {len(running)} running run(s) save a checkpoint (Ctrl-C again to kill them)",
@@ -196,15 +201,16 @@ def _stop(batch: _Batch, engine, running: dict) -> None:
         while running and time.perf_counter() < deadline:
             for ref in engine.wait(list(running), timeout=0.5):
                 spec = running.pop(ref)
-                outcome = engine.outcome(ref, spec.key)
-                status = outcome["status"] if outcome["status"] == "finished" else "interrupted"
-                batch.record(spec, make_row(spec, status, outcome.get("action"), outcome.get("metrics"),
-                                            outcome.get("error") or "interrupted (Ctrl-C)"))
+                row = _outcome_row(batch.out, spec, engine.outcome(ref, spec.key), attempts[spec.key])
+                if row["status"] != "finished":
+                    row.update(status="interrupted", error=row["error"] or "interrupted (Ctrl-C)")
+                batch.record(spec, row)
     except KeyboardInterrupt:
         pass
     engine.cancel(list(running), force=True)
     for spec in running.values():
-        batch.record(spec, make_row(spec, "interrupted", error="killed at Ctrl-C before it saved a checkpoint"))
+        batch.record(spec, make_row(spec, "interrupted", error="killed at Ctrl-C before it saved a checkpoint",
+                                    attempts=attempts[spec.key]))
     running.clear()
 
 
