@@ -63,6 +63,11 @@ class DepthRegistrationConfig(_Section):
     """The depth camera's centre in colour-camera coordinates (metres, OpenCV axes): t of T_color_depth."""
     rotation: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)
     """R of T_color_depth as a unit quaternion, TUM order ``qx qy qz qw``."""
+    ground_truth: Literal["depth", "color"] = "depth"
+    """Which camera the sequence's ground-truth poses belong to. ``depth``: they were computed from the depth
+    stream (KinectFusion, as 7-Scenes' are), so they are moved to the colour camera (T_wc = T_wd inv(T_color_depth))
+    before anything compares them with the tracked poses, which are the colour camera's. ``color``: used as they
+    are (motion capture calibrated to the colour camera)."""
 
     @model_validator(mode="after")
     def _check(self) -> "DepthRegistrationConfig":

@@ -529,7 +529,7 @@ def _write_outputs(config: Config, dataset: RGBDDataset, run_dir: Path, st: _Run
     gt = dataset.gt_poses
     if gt is not None:
         write_tum_trajectory(run_dir / GROUNDTRUTH_FILE, dataset.timestamps, gt,
-                             header="ground truth of the frames of this run")
+                             header="ground truth of the frames of this run (the colour camera, camera-to-world)")
     metrics = {
         "sequence": {"dataset": dataset.describe(), "frames": st.n, "width": dataset.camera.width,
                      "height": dataset.camera.height},

@@ -112,6 +112,34 @@ def test_dataset_applies_the_configured_registration(tmp_path):
     assert small.shape == (240, 320) and small[120, 160] == pytest.approx(2.0, abs=1e-3)
 
 
+@pytest.mark.parametrize("ground_truth", ["depth", "color"])
+def test_ground_truth_of_the_depth_camera_is_moved_to_the_colour_camera(tmp_path, ground_truth):
+    root, _ = _written_sequence(tmp_path, Camera(*KC, W, H, 1000.0), n=3)
+    T_wd = [_T((0.1 * i, -0.2, 0.05 * i), (0.0, np.sin(0.1 * i), 0.0, np.cos(0.1 * i))) for i in range(3)]
+    lines = [f"{1.0 + i / 30:.6f} " + " ".join(f"{v:.9f}" for v in _tum(T)) for i, T in enumerate(T_wd)]
+    (root / "groundtruth.txt").write_text("# timestamp tx ty tz qx qy qz qw\n" + "\n".join(lines) + "\n")
+    reg = {"fx": KD[0], "fy": KD[1], "cx": KD[2], "cy": KD[3], "translation": [-0.025, 0.01, 0.0],
+           "rotation": [0.0, 0.0, float(np.sin(0.01)), float(np.cos(0.01))], "ground_truth": ground_truth}
+    cfg = config_from_dict({"dataset": {"kind": "tum", "path": str(root), "depth_registration": reg}}).dataset
+    ds = open_dataset_from_config(cfg)
+    T_cd = cfg.depth_registration.T_color_depth()
+    p_d = np.array([0.3, -0.2, 2.0, 1.0])  # a point in the depth camera of frame 2
+    for i in range(3):
+        T_wc = ds.gt_poses[i]
+        np.testing.assert_allclose(ds[i].T_wc, T_wc, atol=1e-12)
+        if ground_truth == "color":
+            np.testing.assert_allclose(T_wc, T_wd[i], atol=1e-8)
+        else:  # the colour camera's pose puts the point where the depth camera's does
+            np.testing.assert_allclose(T_wc @ (T_cd @ p_d), T_wd[i] @ p_d, atol=1e-8)
+            assert np.linalg.norm(T_wc[:3, 3] - T_wd[i][:3, 3]) == pytest.approx(np.hypot(0.025, 0.01), abs=1e-6)
+
+
+def _tum(T):
+    from ggfslam.geometry.se3 import pose_to_tum
+
+    return pose_to_tum(T)
+
+
 def test_registration_config_errors_name_the_field(tmp_path):
     base = {"kind": "tum", "path": str(tmp_path)}
     with pytest.raises(ConfigError, match="unit quaternion"):

@@ -12,6 +12,7 @@ from ggfslam.data.imageio import read_depth, read_rgb
 from ggfslam.data.types import Camera, Frame
 from ggfslam.errors import DatasetError
 from ggfslam.geometry.depth import register_depth
+from ggfslam.geometry.se3 import invert
 
 
 class RGBDDataset(ABC):
@@ -42,6 +43,7 @@ class RGBDDataset(ABC):
             raise DatasetError(self.root, f"start must be >= 0, got {start}")
         self._indices: np.ndarray | None = None
         self._registration: tuple[tuple[float, float, float, float], np.ndarray] | None = None
+        self._T_depth_color: np.ndarray | None = None  # [4, 4] set when the ground truth is the depth camera's
 
     # --- for subclasses -------------------------------------------------------------------------
     @abstractmethod
@@ -66,13 +68,15 @@ class RGBDDataset(ABC):
 
     # --- public API -----------------------------------------------------------------------------
     def set_depth_registration(self, depth_intrinsics: tuple[float, float, float, float],
-                               T_color_depth: np.ndarray) -> None:
+                               T_color_depth: np.ndarray, ground_truth_of_depth: bool = False) -> None:
         """Warp every depth image into the colour camera when read: the depth camera's pinhole (fx, fy, cx, cy)
-        and T_color_depth [4, 4] (``geometry.depth.register_depth``)."""
+        and T_color_depth [4, 4] (``geometry.depth.register_depth``); with ``ground_truth_of_depth`` the
+        ground-truth poses (the depth camera's) are moved to the colour camera."""
         if self._raw_camera().distortion:
             raise DatasetError(self.root, "depth registration needs undistorted colour images, but the camera has "
                                           f"distortion {list(self._raw_camera().distortion)}")
         self._registration = (tuple(float(x) for x in depth_intrinsics), np.asarray(T_color_depth, np.float64))
+        self._T_depth_color = invert(self._registration[1]) if ground_truth_of_depth else None
 
     @property
     def indices(self) -> np.ndarray:
@@ -105,8 +109,15 @@ class RGBDDataset(ABC):
     @property
     def gt_poses(self) -> np.ndarray | None:
         """Ground-truth camera-to-world poses [N, 4, 4] of the selected frames, or None."""
-        gt = self._raw_gt()
+        gt = self._gt_colour()
         return None if gt is None else gt[self.indices]
+
+    def _gt_colour(self) -> np.ndarray | None:
+        """Ground-truth colour-camera-to-world poses [N_raw, 4, 4] (see ``set_depth_registration``), or None."""
+        gt = self._raw_gt()
+        if gt is None or self._T_depth_color is None:
+            return gt
+        return gt @ self._T_depth_color
 
     def __len__(self) -> int:
         return len(self.indices)
@@ -130,12 +141,13 @@ class RGBDDataset(ABC):
             # nearest keeps depth edges sharp: averaging across a discontinuity invents surfaces
             depth = cv2.resize(depth, (w, h), interpolation=cv2.INTER_NEAREST)
         gt = self._raw_gt()
+        T_wc = None if gt is None else gt[raw] if self._T_depth_color is None else gt[raw] @ self._T_depth_color
         return Frame(
             index=i,
             timestamp=float(self._raw_timestamps()[raw]),
             rgb=np.ascontiguousarray(rgb, dtype=np.float32),
             depth=np.ascontiguousarray(depth, dtype=np.float32),
-            T_wc=None if gt is None else gt[raw].copy(),
+            T_wc=None if T_wc is None else T_wc.copy(),
             name=name,
         )
 

@@ -112,5 +112,6 @@ def open_dataset_from_config(cfg: DatasetConfig) -> RGBDDataset:
                       resize=cfg.resize, **kwargs)
     reg = cfg.depth_registration
     if reg is not None:
-        ds.set_depth_registration((reg.fx, reg.fy, reg.cx, reg.cy), reg.T_color_depth())
+        ds.set_depth_registration((reg.fx, reg.fy, reg.cx, reg.cy), reg.T_color_depth(),
+                                 ground_truth_of_depth=reg.ground_truth == "depth")
     return ds
