@@ -42,16 +42,15 @@ from typing import Callable
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import X
 
 from ggfslam.config import GCGRConfig
 from ggfslam.geometry.depth import normals_from_depth
 from ggfslam.render.types import Intrinsics
 
+from factors.gcgr_linear import KINDS, MIN_PIXELS, LinearGCGR, moved_past
+
 DEPTH_WEIGHT = 0.5  # METHOD.md eq. 10
 NORMAL_WEIGHT = 0.05
-KINDS = ("depth", "normal")
-MIN_PIXELS = 16  # fewer usable pixels than this make no factor (a few pixels cannot hold a pose)
 
 
 @dataclass
@@ -162,27 +161,20 @@ def eliminate_offset(rows: np.ndarray, J: np.ndarray, valid: np.ndarray) -> tupl
     return rows, J
 
 
-def moved_past(xi: np.ndarray, cfg: GCGRConfig) -> bool:
-    """Whether a tangent step [6] leaves the region where the first-order model is trusted."""
-    return bool(np.degrees(np.linalg.norm(xi[:3])) > cfg.relinearize_rotation
-                or np.linalg.norm(xi[3:]) > cfg.relinearize_translation)
-
-
-class GCGRModel:
+class GCGRModel(LinearGCGR):
     """The GCGR residuals of one keyframe: renders the map, samples the pixels once, and keeps the rows and
-    Jacobians of its last render; ``factors()`` are the GTSAM factors reading it."""
+    Jacobians of its last render (a ``LinearGCGR`` that renders again when linearized too far from it);
+    ``factors()`` are the GTSAM factors reading it, ``frozen()`` the model without its renderer."""
 
     def __init__(self, key: int, render: RenderFn, sensor: SensorView, T_wc: np.ndarray, cfg: GCGRConfig,
-                 view: MapView | None = None):
+                 view: MapView | None = None, relinearize: bool = True):
         self.key, self.render, self.sensor, self.cfg = key, render, sensor, cfg
+        self.relinearizes = relinearize  # False: the first-order model holds wherever it is linearized
         self.renders = 0
         self.render_seconds = 0.0
         view = view if view is not None else self._render(T_wc)
         self.pixels = select_pixels(view, sensor, cfg)  # [N] flat indices, fixed for the model's life
         self._linearize(T_wc, view)
-
-    def __len__(self) -> int:
-        return len(self.pixels)
 
     def _render(self, T_wc: np.ndarray) -> MapView:
         t0 = time.perf_counter()
@@ -232,42 +224,11 @@ class GCGRModel:
     def evaluate(self, kind: str, pose: gtsam.Pose3, H: list | None = None) -> np.ndarray:
         """Rows [N] of ``kind`` at ``pose`` from the first-order model; fills ``H[0]`` with the Jacobian [N, 6]
         when asked, and then (a linearization, at a point the optimizer accepted) renders again first if the
-        pose is past the threshold. Error-only calls (trial steps, often rejected) never render."""
-        xi = self.T0.localCoordinates(pose)
-        if H is not None and moved_past(xi, self.cfg):
+        pose is past the threshold and the model ``relinearizes``. Error-only calls (trial steps, often rejected)
+        never render."""
+        if H is not None and self.relinearizes and moved_past(self.T0.localCoordinates(pose), self.cfg):
             self._linearize(pose.matrix())
-            xi = np.zeros(6)
-        J = self.jacobians[kind]
-        if H is not None:
-            H[0] = J
-        return self.rows0[kind] + J @ xi
-
-    @property
-    def row_sigma(self) -> float:
-        """Noise of one row: ``sigma * sqrt(N / effective_pixels)`` (never below sigma)."""
-        return self.cfg.sigma * float(np.sqrt(max(len(self.pixels) / self.cfg.effective_pixels, 1.0)))
-
-    def noise(self) -> gtsam.noiseModel.Base:
-        """Isotropic ``row_sigma`` per row under a per-row (scalar-reweighted) Huber kernel."""
-        huber = gtsam.noiseModel.mEstimator.Huber.Create(
-            self.cfg.huber, gtsam.noiseModel.mEstimator.Base.ReweightScheme.Scalar)
-        return gtsam.noiseModel.Robust.Create(huber, gtsam.noiseModel.Isotropic.Sigma(len(self.pixels), self.row_sigma))
-
-    def factor(self, kind: str) -> gtsam.CustomFactor:
-        """The ``kind`` ('depth' or 'normal') GCGR factor on ``X(key)``."""
-        if kind not in KINDS:
-            raise ValueError(f"GCGR factor kind must be one of {KINDS}, got {kind!r}")
-
-        def evaluate(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
-            return self.evaluate(kind, values.atPose3(this.keys()[0]), H)
-
-        return gtsam.CustomFactor(self.noise(), [X(self.key)], evaluate)
-
-    def factors(self) -> dict[str, gtsam.CustomFactor]:
-        """The factors by kind (``KINDS``: depth, normal); none when fewer than ``MIN_PIXELS`` pixels are usable."""
-        if len(self.pixels) < MIN_PIXELS:
-            return {}
-        return {k: self.factor(k) for k in KINDS}
+        return super().evaluate(kind, pose, H)
 
 
 def whitened_rows(model: GCGRModel, kind: str, pose: gtsam.Pose3) -> np.ndarray:
@@ -275,6 +236,6 @@ def whitened_rows(model: GCGRModel, kind: str, pose: gtsam.Pose3) -> np.ndarray:
     return model.evaluate(kind, pose) / model.row_sigma
 
 
-__all__ = ["GCGRModel", "MapView", "SensorView", "RenderFn", "select_pixels", "residual_rows",
+__all__ = ["GCGRModel", "LinearGCGR", "MapView", "SensorView", "RenderFn", "select_pixels", "residual_rows",
            "ray_plane_jacobians", "locally_flat", "eliminate_offset", "moved_past", "whitened_rows", "DEPTH_WEIGHT",
            "NORMAL_WEIGHT", "KINDS", "MIN_PIXELS"]

@@ -281,8 +281,9 @@ class BackendConfig(_Section):
     solver: Literal["process", "thread"] = "process"
     """With ``concurrent``: where bundle adjustments are solved. 'process': a child process, while the backend thread
     reads the problem from the map and writes the answer back (GTSAM holds the GIL while it optimizes, so in a thread
-    it stalls tracking: benchmarks/bench_backend_gil.py); 'thread': in the backend thread. With ``gcgr.enabled``
-    they are solved in the thread (GCGR's factors render this process's map)."""
+    it stalls tracking: benchmarks/bench_backend_gil.py); 'thread': in the backend thread. With ``gcgr.enabled`` the
+    GCGR factors go to the child as their first-order models; keyframes the solution moves past the relinearization
+    threshold are rendered again in the backend thread and the problem is solved once more from there."""
     loop_closure: bool = True
     """Detect revisited places and correct the whole trajectory by pose-graph optimization."""
     global_ba: bool = True
@@ -585,6 +586,12 @@ class GCGRConfig(_Section):
     relinearize_translation: float = 0.01
     """... or more than this (m); elsewhere (and at every trial step) errors come from the first-order model of
     the last render."""
+    relinearize: Literal["render", "drop"] = "render"
+    """What a keyframe's model does when bundle adjustment moves the keyframe past the relinearization threshold:
+    'render' renders the map again there (60-520 ms a render on 2 CPU cores, inside tracking in sequential mode);
+    'drop' never renders in a BA: a model already past the threshold when a BA starts gives no factor, one that
+    passes it during the BA keeps its first-order model, until training hands over a fresh view
+    (``harvest_every``)."""
     free_depth_offset: bool = False
     """Give each keyframe's depth rows a free constant offset, eliminated in closed form (rows and Jacobian
     columns minus their means over the valid rows): the alpha-blended render sits a few millimetres in front of

@@ -12,7 +12,7 @@ from ggfslam.backend.backend import Backend
 from ggfslam.backend.graph import L, X, calibrations, observation_factor
 from ggfslam.backend.local_ba import global_bundle_adjustment, local_bundle_adjustment
 from ggfslam.backend.slam_map import KeyFrame, SlamMap
-from ggfslam.config import BackendConfig, TrackingConfig
+from ggfslam.config import BackendConfig, GCGRConfig, TrackingConfig
 from ggfslam.data.types import Camera
 from ggfslam.frontend.features import Features, backproject_points
 from ggfslam.geometry.se3 import invert, make_pose
@@ -182,6 +182,92 @@ def test_the_solver_process_gives_the_same_bundle_adjustment_as_this_process():
         np.testing.assert_allclose(there.keyframes[k].T_wc, here.keyframes[k].T_wc, atol=1e-12)
     np.testing.assert_allclose(there.positions, here.positions, atol=1e-12)
     assert 3 not in there.observations[7]  # the outlier found in the child is dropped from this map
+
+
+class _Pull:
+    """A stand-in for a keyframe's GCGR model: rows W Log(T_target^-1 T) [32], linearized where it last rendered;
+    ``relinearize`` is its render (counted)."""
+
+    def __new__(cls, key, target, T0, relinearize_translation):
+        from factors.gcgr_linear import LinearGCGR
+
+        class Pull(LinearGCGR):
+            relinearizes = True
+
+            def relinearize(self, T_wc):
+                self.rendered_at.append(np.array(T_wc))
+                self._set(T_wc)
+
+            def _set(self, T_wc):
+                self.T0 = gtsam.Pose3(np.asarray(T_wc, np.float64))
+                r = self.W @ gtsam.Pose3(self.target).localCoordinates(self.T0)
+                self.rows0, self.jacobians = {"depth": r, "normal": 0.1 * r}, {"depth": self.W, "normal": 0.1 * self.W}
+
+        cfg = GCGRConfig(sigma=0.002, relinearize_rotation=1000 * relinearize_translation,
+                         relinearize_translation=relinearize_translation)  # 1 mm : 1 degree
+        m = Pull.__new__(Pull)
+        m.key, m.cfg, m.target, m.rendered_at = key, cfg, target, []
+        m.W = np.random.default_rng(key).normal(size=(32, 6))  # [32, 6]
+        m._set(T0)
+        return m
+
+
+class _Source:
+    """What local BA asks of a ``GCGRSource``."""
+
+    def __init__(self, models):
+        self.models, self.ba_relinearized = models, 0
+
+    def window_models(self, poses):
+        return [m for m in self.models if m.key in poses]
+
+    def window_factors(self, poses):
+        return [(m.key, kind, f) for m in self.window_models(poses) for kind, f in m.factors().items()]
+
+
+def _pulled_map(seed, relinearize_translation):
+    """The perturbed map with GCGR stand-ins pulling keyframes 1-3 2 cm sideways of where they are."""
+    smap = _perturbed_map(seed)
+    shift = make_pose(np.eye(3), [0.0, 0.02, 0.0])
+    models = [_Pull(k, smap.keyframes[k].T_wc @ shift, smap.keyframes[k].T_wc, relinearize_translation) for k in (1, 2, 3)]
+    return smap, _Source(models)
+
+
+def test_gcgr_bundle_adjustment_in_the_solver_process_matches_this_process_and_relinearizes():
+    from ggfslam.backend.solver_process import SolverProcess
+
+    cfg = BackendConfig(window=8, iterations=20)
+    here, src_here = _pulled_map(5, relinearize_translation=1.0)  # a threshold never passed: no renders
+    s_here = local_bundle_adjustment(here, 3, CAM, TCFG, cfg, gcgr=src_here)
+    solver = SolverProcess()
+    try:
+        there, src_there = _pulled_map(5, relinearize_translation=1.0)
+        s_there = local_bundle_adjustment(there, 3, CAM, TCFG, cfg, gcgr=src_there, solver=solver)
+        # the same problem, but keyframes the first solution moves by over 1 mm (or 1 deg) render again there and it is solved
+        # once more from that solution
+        again, src_again = _pulled_map(5, relinearize_translation=0.001)
+        first = local_ba.solve_with_gcgr(local_ba.ba_problem(_pulled_map(5, 1.0)[0], 3, CAM, TCFG, cfg),
+                                         _pulled_map(5, 1.0)[1], local_ba.solve)
+        s_again = local_bundle_adjustment(again, 3, CAM, TCFG, cfg, gcgr=src_again, solver=solver)
+        assert solver.solved == 3 and solver.alive  # one problem, then one solved twice
+    finally:
+        solver.close()
+    assert s_there.gcgr_factors == s_here.gcgr_factors == 6 and src_there.ba_relinearized == 0
+    assert (s_there.outliers, s_there.landmarks) == (s_here.outliers, s_here.landmarks)
+    assert s_there.error_after == pytest.approx(s_here.error_after, rel=1e-9, abs=1e-12)
+    for k in here.keyframes:
+        np.testing.assert_allclose(there.keyframes[k].T_wc, here.keyframes[k].T_wc, atol=1e-12)
+    np.testing.assert_allclose(there.positions, here.positions, atol=1e-12)
+    assert 3 not in there.observations[7]
+    # relinearized: each moved keyframe rendered once, at the first solution; the outlier of the first solve stays out
+    assert src_again.ba_relinearized == 1 and s_again.outliers == s_there.outliers
+    assert s_again.error_before == pytest.approx(s_there.error_before, rel=1e-12)
+    moved = {m.key: m.rendered_at for m in src_again.models if m.rendered_at}
+    assert moved and all(len(r) == 1 for r in moved.values())
+    for k, (T,) in moved.items():
+        np.testing.assert_allclose(T, first.poses[k], atol=1e-12)
+        assert not np.allclose(again.keyframes[k].T_wc, first.poses[k], atol=1e-9)  # solved again from there
+    assert 3 not in again.observations[7]
 
 
 def test_a_dead_solver_process_falls_back_to_this_process_with_one_warning(caplog):

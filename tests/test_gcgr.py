@@ -292,6 +292,32 @@ def test_training_renders_become_models_without_renders_of_their_own(scene):
     assert len(src.window_factors({3: truth})) == 2 and mapper.left_out == [3]
 
 
+def test_relinearize_drop_renders_nothing_in_bundle_adjustment(scene):
+    from ggfslam.backend.gcgr_source import GCGRSource
+
+    _, render_out, sensor, truth = scene
+    near = gtsam.Pose3(truth).retract(np.array([0.0, 0.0, 0.0, 0.003, 0.0, 0.0]))  # 3 mm: inside the trust region
+    far = gtsam.Pose3(truth).retract(np.array([0.0, 0.0, 0.0, 0.0, 0.02, 0.0]))  # 2 cm: past it
+    renders = {}
+    for mode in ("render", "drop"):
+        mapper = _SceneMapper(render_out)
+        src = GCGRSource(mapper, None, GCGRConfig(harvest_every=10, renders_per_ba=0, relinearize=mode))
+        src.add_keyframe(1, sensor.depth)
+        assert not src.wants(1, 0) and src.wants(1, 10)
+        src.offer(1, truth, 10, render_out(truth))  # a training render at the truth
+        mapper.iteration = 20
+        if mode == "drop":  # a keyframe that has moved past the threshold since that render gets no factor
+            assert src.window_factors({1: far.matrix()}) == [] and src.models_stale == 1
+        (_, _, f), _ = src.window_factors({1: near.matrix()})
+        values = gtsam.Values()
+        values.insert(X(1), far)
+        f.linearize(values)  # LM linearizing there
+        renders[mode] = src.renders
+        model, _ = src.cached_models()[1]
+        assert model.T0.equals(far if mode == "render" else gtsam.Pose3(truth), 1e-12)
+    assert renders == {"render": 1, "drop": 0}
+
+
 def test_config_needs_the_map():
     with pytest.raises(ConfigError, match="gcgr.enabled needs mapping.enabled"):
         config_from_dict({"dataset": {"kind": "synthetic"}, "gcgr": {"enabled": True},

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from gtsam.symbol_shorthand import X
 
-from factors.gcgr import GCGRModel, MapView, SensorView
+from factors.gcgr import KINDS, MIN_PIXELS, GCGRModel, MapView, SensorView
 from ggfslam.backend.local_ba import IndeterminateSystem, optimize_lm
 from ggfslam.config import GCGRConfig
 from ggfslam.errors import ConfigError
@@ -60,6 +60,8 @@ class GCGRSource:
         self.frames_refined = 0
         self.refine_failed = 0  # per-frame refinements whose system was indeterminate (pose kept)
         self.refine_seconds = 0.0
+        self.models_stale = 0  # models left out of a BA: past the relinearization threshold (relinearize: drop)
+        self.ba_relinearized = 0  # BAs solved in the solver process that rendered moved keyframes and solved again
 
     @property
     def renders_per_ba(self) -> int:
@@ -118,7 +120,8 @@ class GCGRSource:
         if sensor is None:
             return None
         it = self.mapper.iteration if iteration is None else iteration
-        m = GCGRModel(kf_id, lambda T: self.render(T, kf_id), sensor, T_wc, self.cfg, view=view)
+        m = GCGRModel(kf_id, lambda T: self.render(T, kf_id), sensor, T_wc, self.cfg, view=view,
+                      relinearize=self.cfg.relinearize == "render")
         self.models_built += 1
         with self._lock:
             self._models[kf_id] = (m, it)
@@ -155,13 +158,13 @@ class GCGRSource:
             return cached[0]
         return self.build(kf_id, T_wc)
 
-    def window_factors(self, poses: dict[int, np.ndarray]) -> list[tuple[int, str, gtsam.CustomFactor]]:
-        """(keyframe, kind, factor) of the GCGR factors of the keyframes in ``poses`` (id -> T_wc [4, 4]) for one
-        local BA.
+    def window_models(self, poses: dict[int, np.ndarray]) -> list[GCGRModel]:
+        """The GCGR models of the keyframes in ``poses`` (id -> T_wc [4, 4]) for one local BA, each with factors.
 
         At most ``gcgr.renders_per_ba`` new renders for keyframes without a model (the newest first) or whose
         model is older than ``gcgr.max_age`` steps (stalest first); the others use their cached model (however
-        old) or get no factor this time."""
+        old) or get none this time. With ``gcgr.relinearize: drop``, models whose keyframe has moved past the
+        relinearization threshold since their render are left out."""
         if not self.ready():
             return []
         it = self.mapper.iteration
@@ -177,13 +180,19 @@ class GCGRSource:
             budget -= m is not None
             if m is None and cached[k] is not None:
                 m = cached[k][0]
-            if m is None:
+            if m is None or len(m) < MIN_PIXELS:
                 continue
-            fs = m.factors()
-            out += [(k, kind, f) for kind, f in fs.items()]
-            self.factors_added += len(fs)
-            self.pixels_total += len(m) * (len(fs) > 0)
+            if not m.relinearizes and m.moved_past(poses[k]):  # gcgr.relinearize: drop
+                self.models_stale += 1
+                continue
+            out.append(m)
+            self.factors_added += len(KINDS)
+            self.pixels_total += len(m)
         return out
+
+    def window_factors(self, poses: dict[int, np.ndarray]) -> list[tuple[int, str, gtsam.CustomFactor]]:
+        """(keyframe, kind, factor) of the GCGR factors of ``window_models(poses)``, for a BA in this process."""
+        return [(m.key, kind, f) for m in self.window_models(poses) for kind, f in m.factors().items()]
 
     def refine_frame(self, T_wc: np.ndarray, depth: np.ndarray, iterations: int = 5) -> np.ndarray:
         """Per-frame GCGR: the tracked pose T_wc [4, 4] refined against the map under a prior on it."""
@@ -218,5 +227,5 @@ class GCGRSource:
         return {"models": self.models_built, "models_from_training": self.models_harvested, "factors": self.factors_added,
                 "pixels_mean": self.pixels_total / max(self.factors_added // 2, 1),
                 "renders": self.renders, "render_ms_mean": 1000 * self.render_seconds / max(self.renders, 1),
-                "frames_refined": self.frames_refined, "refine_failed": self.refine_failed,
+                "models_stale": self.models_stale, "ba_relinearized": self.ba_relinearized, "frames_refined": self.frames_refined, "refine_failed": self.refine_failed,
                 "refine_ms_mean": 1000 * self.refine_seconds / max(self.frames_refined, 1)}

@@ -1,8 +1,9 @@
 """Local bundle adjustment: a window of covisible keyframes and their landmarks, older observers held fixed."""
 from __future__ import annotations
 
+import dataclasses
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
@@ -77,6 +78,7 @@ class BAProblem:
     links: list  # (keyframe, other keyframe, T_other_keyframe [4, 4]) dense-odometry links
     plane_obs: list  # (keyframe, plane id, camera-frame coefficients [4])
     planes_w: dict  # plane id -> world coefficients [4]
+    gcgr: list = field(default_factory=list)  # factors.gcgr_linear.LinearGCGR of optimized keyframes
 
 
 @dataclass
@@ -174,7 +176,8 @@ def ba_problem(smap: SlamMap, kf_id: int, camera: Camera, tcfg: TrackingConfig, 
 
 def build_graph(problem: BAProblem, gcgr=None) -> LocalGraph:
     """The GTSAM factor graph of a BA problem; with a ``GCGRSource`` every optimized (not fixed) keyframe also gets
-    its GCGR depth and normal factors."""
+    its GCGR depth and normal factors (rendering this process's map), else the problem's own first-order GCGR
+    models give them."""
     pr, tcfg, bcfg = problem, problem.tcfg, problem.bcfg
     mono, stereo = calibrations(pr.camera, tcfg.virtual_baseline)
     graph = gtsam.NonlinearFactorGraph()
@@ -193,16 +196,22 @@ def build_graph(problem: BAProblem, gcgr=None) -> LocalGraph:
     for k, pid, z in pr.plane_obs:
         graph.add(plane_factor(k, pid, z, bcfg.plane_sigmas))
     gcgr_labels = {}
-    if gcgr is not None:  # before the observations: the outlier pass keeps the graph's head as it is
-        for k, kind, f in gcgr.window_factors({k: pr.poses[k] for k in pr.window if k not in pr.fixed}):
-            gcgr_labels[graph.size()] = (k, kind)
-            graph.add(f)
+    gcgr_factors = ([(m.key, kind, f) for m in pr.gcgr for kind, f in m.factors().items()] if gcgr is None
+                    else gcgr.window_factors(optimized_poses(pr)))
+    for k, kind, f in gcgr_factors:  # before the observations: the outlier pass keeps the graph's head as it is
+        gcgr_labels[graph.size()] = (k, kind)
+        graph.add(f)
     factors = []
     for (k, lm, _), uv, z, sigma in zip(pr.obs, pr.uv, pr.depth, pr.sigmas):
         factor = observation_factor(k, lm, uv, z, sigma, mono, stereo, bcfg.huber_stereo, bcfg.huber_mono)
         graph.add(factor)
         factors.append(factor)
     return LocalGraph(pr, graph, values, factors, gcgr_labels)
+
+
+def optimized_poses(problem: BAProblem) -> dict[int, np.ndarray]:
+    """Keyframe id -> T_wc [4, 4] of the keyframes a BA problem optimizes (in its window, not fixed)."""
+    return {k: problem.poses[k] for k in problem.window if k not in problem.fixed}
 
 
 def local_graph(smap: SlamMap, kf_id: int, camera: Camera, tcfg: TrackingConfig, bcfg: BackendConfig,
@@ -259,7 +268,7 @@ def solve_graph(lg: LocalGraph) -> BASolution:
 
 
 def solve(problem: BAProblem) -> BASolution:
-    """Build and solve a BA problem without GCGR factors (what the solver process runs)."""
+    """Build and solve a BA problem, with its first-order GCGR models if it has them (what the solver process runs)."""
     return solve_graph(build_graph(problem))
 
 
@@ -287,14 +296,15 @@ def local_bundle_adjustment(smap: SlamMap, kf_id: int, camera: Camera, tcfg: Tra
     ``iterations`` (default ``backend.iterations``), drop outlier observations and write the result into the map;
     None if too small.
 
-    With a ``GCGRSource`` every optimized (not fixed) keyframe also gets its GCGR depth and normal factors; without
-    one, a ``solver`` (``solver_process.SolverProcess``) solves it in its own process."""
+    With a ``GCGRSource`` every optimized (not fixed) keyframe also gets its GCGR depth and normal factors. With a
+    ``solver`` (``solver_process.SolverProcess``) the problem is solved in its process (``solve_with_gcgr`` with
+    GCGR), else in this one."""
     t0 = time.perf_counter()
-    if solver is not None and gcgr is None:
+    if solver is not None:
         problem = ba_problem(smap, kf_id, camera, tcfg, bcfg, window, iterations)
         if problem is None:
             return None
-        sol = solver.solve(problem)
+        sol = solver.solve(problem) if gcgr is None else solve_with_gcgr(problem, gcgr, solver.solve)
     else:
         lg = local_graph(smap, kf_id, camera, tcfg, bcfg, gcgr, window, iterations)
         if lg is None:
@@ -303,6 +313,39 @@ def local_bundle_adjustment(smap: SlamMap, kf_id: int, camera: Camera, tcfg: Tra
     apply_solution(smap, problem, sol)
     sol.stats.seconds = time.perf_counter() - t0  # snapshot, graph and write-back included, as before
     return sol.stats
+
+
+def solve_with_gcgr(problem: BAProblem, gcgr, solve) -> BASolution:
+    """A BA problem with the GCGR models of ``gcgr`` (a ``GCGRSource``) solved by ``solve`` (another process's):
+    the models travel as their first-order models (``LinearGCGR``); keyframes the solution moved past the
+    relinearization threshold render again there and the problem is solved once more from that solution (what
+    the models do by themselves at LM's linearizations when the BA runs in this process)."""
+    models = gcgr.window_models(optimized_poses(problem))
+    problem.gcgr = [m.frozen() for m in models]
+    sol = solve(problem)
+    moved = [m for m in models if m.relinearizes and m.key in sol.poses and m.moved_past(sol.poses[m.key])]
+    if sol.stats.failed or not moved:
+        return sol
+    for m in moved:
+        m.relinearize(sol.poses[m.key])
+    gcgr.ba_relinearized += 1
+    again = solve(continued_problem(problem, sol, [m.frozen() for m in models]))
+    if again.stats.failed:
+        return sol
+    again.stats.error_before = sol.stats.error_before
+    again.outliers = sol.outliers + again.outliers
+    again.stats.outliers = len(again.outliers)
+    return again
+
+
+def continued_problem(problem: BAProblem, sol: BASolution, gcgr: list) -> BAProblem:
+    """The problem again, started from ``sol`` (its outlier observations dropped), with the GCGR models ``gcgr``."""
+    dropped = set(sol.outliers)  # (landmark, keyframe)
+    keep = np.array([(lm, k) not in dropped for k, lm, _ in problem.obs], bool)  # [M]
+    return dataclasses.replace(
+        problem, poses={**problem.poses, **sol.poses}, positions=sol.positions.copy(),
+        obs=[o for o, ok in zip(problem.obs, keep) if ok], uv=problem.uv[keep], depth=problem.depth[keep],
+        sigmas=problem.sigmas[keep], planes_w={**problem.planes_w, **sol.planes}, gcgr=gcgr)
 
 
 def global_bundle_adjustment(smap: SlamMap, camera: Camera, tcfg: TrackingConfig, bcfg: BackendConfig,

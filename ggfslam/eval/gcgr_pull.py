@@ -130,8 +130,9 @@ def keyframe_pulls(run_dir: str | Path, overrides: list[str] | None = None, star
     run_dir = Path(run_dir)
     config, mapper, ckpt = load_mapper(run_dir)
     gcfg = load_config(run_dir / CONFIG_FILE, list(overrides or [])).gcgr if overrides else config.gcgr
-    # every model here is rendered on purpose (``build``): the per-BA render budget does not apply
-    gcfg = gcfg.model_copy(update={"renders_per_ba": max(gcfg.renders_per_ba or 0, 1)})
+    # every model here is rendered on purpose (``build``), and again as GCGR alone moves it: the per-BA render
+    # budget and gcgr.relinearize do not apply
+    gcfg = gcfg.model_copy(update={"renders_per_ba": max(gcfg.renders_per_ba or 0, 1), "relinearize": "render"})
     ids, est, gt = run_keyframes(run_dir, ckpt)
     if not ids:
         raise RunDirError(f"{run_dir}: no keyframe has a ground-truth pose")
