@@ -1,6 +1,7 @@
 """GCGR in the SLAM system: each keyframe's GCGR factors (``factors/gcgr.py``) built from the Gaussian map.
 
-Local bundle adjustment asks ``window_factors`` for the keyframes it optimizes. The source keeps each new
+Local bundle adjustment asks ``window_factors`` (a BA in this process) or ``window_models`` (whose first-order
+models go to the solver process) for the keyframes it optimizes. The source keeps each new
 keyframe's sensor depth at the factors' resolution (``gcgr.width``, by default the training resolution; older
 keyframes fall back to the mapper's keyframe store) and caches one ``GCGRModel`` per keyframe, from two sources:
 - the mapper's training renders (the source is the mapper's ``view_sink``): every ``gcgr.harvest_every`` steps on a
@@ -11,7 +12,8 @@ keyframes fall back to the mapper's keyframe store) and caches one ``GCGRModel``
   new keyframe's map then only echoes the depth it has just seeded; the newest keyframe first, then keyframes whose
   model is missing or older than ``gcgr.max_age`` steps). In sequential mode BA runs inside tracking, so these are
   what GCGR costs the tracking rate.
-A model re-renders by itself when the optimizer linearizes it past the relinearization threshold.
+A model re-renders by itself when the optimizer linearizes it past the relinearization threshold
+(``gcgr.relinearize: render``), or is left out of BAs from there until training hands over a fresh view (``drop``).
 ``refine_frame`` is the per-frame GCGR pose refinement of tracked frames.
 The refined keyframe poses reach the mapper and the frontend through the SLAM map, like every BA result.
 """
