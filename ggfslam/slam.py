@@ -537,6 +537,9 @@ def _write_outputs(config: Config, dataset: RGBDDataset, run_dir: Path, st: _Run
                      "frames_skipped": len(st.skipped), "skipped": st.skipped, "fps": timer.fps("tracking")},
         "backend": tracker.summary(),
     }
+    gcgr = getattr(getattr(tracker, "backend", None), "gcgr", None)
+    if gcgr is not None and gcgr.unused_warning():
+        log.warning(gcgr.unused_warning())
     if st.live is not None:
         metrics["live"] = _live_metrics(st)
     if gt is not None:

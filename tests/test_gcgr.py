@@ -303,6 +303,7 @@ def test_relinearize_drop_renders_nothing_in_bundle_adjustment(scene):
         mapper = _SceneMapper(render_out)
         src = GCGRSource(mapper, None, GCGRConfig(harvest_every=10, renders_per_ba=0, relinearize=mode))
         src.add_keyframe(1, sensor.depth)
+        assert "gcgr.harvest_every = 10 steps" in src.unused_warning()  # a run that ended here: GCGR did nothing
         assert not src.wants(1, 0) and src.wants(1, 10)
         src.offer(1, truth, 10, render_out(truth))  # a training render at the truth
         mapper.iteration = 20
@@ -313,6 +314,7 @@ def test_relinearize_drop_renders_nothing_in_bundle_adjustment(scene):
         values.insert(X(1), far)
         f.linearize(values)  # LM linearizing there
         renders[mode] = src.renders
+        assert src.unused_warning() is None
         model, _ = src.cached_models()[1]
         assert model.T0.equals(far if mode == "render" else gtsam.Pose3(truth), 1e-12)
     assert renders == {"render": 1, "drop": 0}

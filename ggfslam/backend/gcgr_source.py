@@ -224,6 +224,16 @@ class GCGRSource:
         self.refine_seconds += time.perf_counter() - t0
         return T
 
+    def unused_warning(self) -> str | None:
+        """Why GCGR did nothing in a run, when it made no factor and refined no frame (None when it did something)."""
+        if self.factors_added or self.frames_refined:
+            return None
+        return (f"gcgr.enabled, but GCGR made no factor in any bundle adjustment: {self.models_built} keyframe models, "
+                f"none in time for a BA (the mapper trained {self.mapper.iteration} steps over "
+                f"{len(self.mapper.store)} keyframes; a keyframe's training render becomes its model only after "
+                f"gcgr.harvest_every = {self.cfg.harvest_every} steps on it). Lower gcgr.harvest_every or set "
+                f"gcgr.renders_per_ba >= 1 to give BAs models, or leave gcgr off")
+
     def summary(self) -> dict:
         """GCGR figures for metrics.json (``backend.gcgr``)."""
         return {"models": self.models_built, "models_from_training": self.models_harvested, "factors": self.factors_added,
