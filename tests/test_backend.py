@@ -7,6 +7,7 @@ import pytest
 from gtsam.utils.numerical_derivative import numericalDerivative21, numericalDerivative22
 from scipy.spatial.transform import Rotation
 
+from factors.gcgr_linear import LinearGCGR
 from ggfslam.backend import local_ba
 from ggfslam.backend.backend import Backend
 from ggfslam.backend.graph import L, X, calibrations, observation_factor
@@ -184,32 +185,27 @@ def test_the_solver_process_gives_the_same_bundle_adjustment_as_this_process():
     assert 3 not in there.observations[7]  # the outlier found in the child is dropped from this map
 
 
-class _Pull:
+class _Pull(LinearGCGR):
     """A stand-in for a keyframe's GCGR model: rows W Log(T_target^-1 T) [32], linearized where it last rendered;
-    ``relinearize`` is its render (counted)."""
+    ``relinearize`` is its render (recorded)."""
 
-    def __new__(cls, key, target, T0, relinearize_translation):
-        from factors.gcgr_linear import LinearGCGR
+    relinearizes = True
 
-        class Pull(LinearGCGR):
-            relinearizes = True
-
-            def relinearize(self, T_wc):
-                self.rendered_at.append(np.array(T_wc))
-                self._set(T_wc)
-
-            def _set(self, T_wc):
-                self.T0 = gtsam.Pose3(np.asarray(T_wc, np.float64))
-                r = self.W @ gtsam.Pose3(self.target).localCoordinates(self.T0)
-                self.rows0, self.jacobians = {"depth": r, "normal": 0.1 * r}, {"depth": self.W, "normal": 0.1 * self.W}
-
+    def __init__(self, key, target, T0, relinearize_translation):
         cfg = GCGRConfig(sigma=0.002, relinearize_rotation=1000 * relinearize_translation,
                          relinearize_translation=relinearize_translation)  # 1 mm : 1 degree
-        m = Pull.__new__(Pull)
-        m.key, m.cfg, m.target, m.rendered_at = key, cfg, target, []
-        m.W = np.random.default_rng(key).normal(size=(32, 6))  # [32, 6]
-        m._set(T0)
-        return m
+        self.target, self.rendered_at = target, []
+        self.W = np.random.default_rng(key).normal(size=(32, 6))  # [32, 6]
+        super().__init__(key, T0, *self._rows(T0), cfg)
+
+    def _rows(self, T_wc):
+        r = self.W @ gtsam.Pose3(self.target).localCoordinates(gtsam.Pose3(np.asarray(T_wc, np.float64)))  # [32]
+        return {"depth": r, "normal": 0.1 * r}, {"depth": self.W, "normal": 0.1 * self.W}
+
+    def relinearize(self, T_wc):
+        self.rendered_at.append(np.array(T_wc))
+        self.T0 = gtsam.Pose3(np.asarray(T_wc, np.float64))
+        self.rows0, self.jacobians = self._rows(T_wc)
 
 
 class _Source:
