@@ -93,4 +93,9 @@ class LinearGCGR:
                           {k: v.copy() for k, v in self.jacobians.items()}, self.cfg)
 
 
-__all__ = ["LinearGCGR", "moved_past", "KINDS", "MIN_PIXELS"]
+def labelled_factors(models: list[LinearGCGR]) -> list[tuple[int, str, gtsam.CustomFactor]]:
+    """(keyframe, kind, factor) of every factor of ``models``, in their order: what a BA graph adds and labels."""
+    return [(m.key, kind, f) for m in models for kind, f in m.factors().items()]
+
+
+__all__ = ["LinearGCGR", "labelled_factors", "moved_past", "KINDS", "MIN_PIXELS"]

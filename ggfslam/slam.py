@@ -538,8 +538,8 @@ def _write_outputs(config: Config, dataset: RGBDDataset, run_dir: Path, st: _Run
         "backend": tracker.summary(),
     }
     gcgr = getattr(getattr(tracker, "backend", None), "gcgr", None)
-    if gcgr is not None and gcgr.unused_warning():
-        log.warning(gcgr.unused_warning())
+    if gcgr is not None and (unused := gcgr.unused_warning()):
+        log.warning(unused)
     if st.live is not None:
         metrics["live"] = _live_metrics(st)
     if gt is not None:

@@ -7,7 +7,7 @@ import pytest
 from gtsam.utils.numerical_derivative import numericalDerivative21, numericalDerivative22
 from scipy.spatial.transform import Rotation
 
-from factors.gcgr_linear import LinearGCGR
+from factors.gcgr_linear import LinearGCGR, labelled_factors
 from ggfslam.backend import local_ba
 from ggfslam.backend.backend import Backend
 from ggfslam.backend.graph import L, X, calibrations, observation_factor
@@ -218,7 +218,7 @@ class _Source:
         return [m for m in self.models if m.key in poses]
 
     def window_factors(self, poses):
-        return [(m.key, kind, f) for m in self.window_models(poses) for kind, f in m.factors().items()]
+        return labelled_factors(self.window_models(poses))
 
 
 def _pulled_map(seed, relinearize_translation):
@@ -242,8 +242,8 @@ def test_gcgr_bundle_adjustment_in_the_solver_process_matches_this_process_and_r
         # the same problem, but keyframes the first solution moves by over 1 mm (or 1 deg) render again there and it is solved
         # once more from that solution
         again, src_again = _pulled_map(5, relinearize_translation=0.001)
-        first = local_ba.solve_with_gcgr(local_ba.ba_problem(_pulled_map(5, 1.0)[0], 3, CAM, TCFG, cfg),
-                                         _pulled_map(5, 1.0)[1], local_ba.solve)
+        ref, src_ref = _pulled_map(5, relinearize_translation=1.0)  # its first solve, in this process
+        first = local_ba.solve_with_gcgr(local_ba.ba_problem(ref, 3, CAM, TCFG, cfg), src_ref, local_ba.solve)
         s_again = local_bundle_adjustment(again, 3, CAM, TCFG, cfg, gcgr=src_again, solver=solver)
         assert solver.solved == 3 and solver.alive  # one problem, then one solved twice
     finally:

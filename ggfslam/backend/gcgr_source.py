@@ -29,6 +29,7 @@ import torch
 from gtsam.symbol_shorthand import X
 
 from factors.gcgr import KINDS, MIN_PIXELS, GCGRModel, MapView, SensorView
+from factors.gcgr_linear import labelled_factors
 from ggfslam.backend.local_ba import IndeterminateSystem, optimize_lm
 from ggfslam.config import GCGRConfig
 from ggfslam.errors import ConfigError
@@ -194,7 +195,7 @@ class GCGRSource:
 
     def window_factors(self, poses: dict[int, np.ndarray]) -> list[tuple[int, str, gtsam.CustomFactor]]:
         """(keyframe, kind, factor) of the GCGR factors of ``window_models(poses)``, for a BA in this process."""
-        return [(m.key, kind, f) for m in self.window_models(poses) for kind, f in m.factors().items()]
+        return labelled_factors(self.window_models(poses))
 
     def refine_frame(self, T_wc: np.ndarray, depth: np.ndarray, iterations: int = 5) -> np.ndarray:
         """Per-frame GCGR: the tracked pose T_wc [4, 4] refined against the map under a prior on it."""
@@ -239,5 +240,6 @@ class GCGRSource:
         return {"models": self.models_built, "models_from_training": self.models_harvested, "factors": self.factors_added,
                 "pixels_mean": self.pixels_total / max(self.factors_added // 2, 1),
                 "renders": self.renders, "render_ms_mean": 1000 * self.render_seconds / max(self.renders, 1),
-                "models_stale": self.models_stale, "ba_relinearized": self.ba_relinearized, "frames_refined": self.frames_refined, "refine_failed": self.refine_failed,
+                "models_stale": self.models_stale, "ba_relinearized": self.ba_relinearized,
+                "frames_refined": self.frames_refined, "refine_failed": self.refine_failed,
                 "refine_ms_mean": 1000 * self.refine_seconds / max(self.frames_refined, 1)}

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
+from factors.gcgr_linear import labelled_factors
 from ggfslam.backend.graph import (
     L, P, X, calibrations, observation_errors, observation_factor, odometry_link_factor, plane_factor,
 )
@@ -196,8 +197,7 @@ def build_graph(problem: BAProblem, gcgr=None) -> LocalGraph:
     for k, pid, z in pr.plane_obs:
         graph.add(plane_factor(k, pid, z, bcfg.plane_sigmas))
     gcgr_labels = {}
-    gcgr_factors = ([(m.key, kind, f) for m in pr.gcgr for kind, f in m.factors().items()] if gcgr is None
-                    else gcgr.window_factors(optimized_poses(pr)))
+    gcgr_factors = labelled_factors(pr.gcgr) if gcgr is None else gcgr.window_factors(optimized_poses(pr))
     for k, kind, f in gcgr_factors:  # before the observations: the outlier pass keeps the graph's head as it is
         gcgr_labels[graph.size()] = (k, kind)
         graph.add(f)
