@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 import torch
 
-from ggfslam.eval.image import (LPIPS, PSNR, SSIM, DepthL1, depth_error_split, depth_l1_cm, psnr, ssim,
-                                ssim_np)
+from ggfslam.eval.image import (LPIPS, PSNR, SSIM, DepthL1, colour_error_split, depth_error_split, depth_l1_cm,
+                                psnr, ssim, ssim_np)
 from ggfslam.eval.perf import StageTimer, peak_rss_mb
 from ggfslam.eval.report import metrics_table
 from ggfslam.eval.trajectory import ATE, RPE, trajectory_metrics
@@ -191,3 +191,22 @@ def test_depth_error_split_adds_up_to_the_l1():
     total = split["depth_hole_cm"] + split["depth_tail_cm"] + rest
     assert depth_l1_cm(depth, ref) == pytest.approx(total)
     assert split["depth_median_cm"] == 0.0
+
+
+def test_colour_error_split_leaves_out_a_changing_screen_but_not_scattered_errors():
+    """A 480x640 frame off by 0.02 everywhere, a 'screen' of 40x50 pixels showing something else (off by 0.6), and
+    50 scattered pixels off by 0.6 (too small a region each to be left out)."""
+    rng = np.random.default_rng(0)
+    ref = rng.uniform(0.2, 0.8, (480, 640, 3))
+    img = ref + 0.02
+    img[10:50, 500:550] = ref[10:50, 500:550] + 0.6  # 2000 px: above 0.13% of 307200 (400 px)
+    ys, xs = rng.integers(100, 470, 50), rng.integers(0, 400, 50)
+    img[ys, xs] = ref[ys, xs] - 0.6
+    split = colour_error_split(img, ref)
+    screen = np.zeros((480, 640), bool)
+    screen[10:50, 500:550] = True
+    assert split["gross_area_percent"] == pytest.approx(100 * 2000 / (480 * 640))
+    assert split["psnr_without_gross"] == pytest.approx(psnr(img, ref, mask=~screen))
+    assert split["psnr_without_gross"] > psnr(img, ref) + 5.0
+    clean = colour_error_split(ref + 0.02, ref)  # nothing gross: the same figure as the PSNR
+    assert clean["gross_area_percent"] == 0.0 and clean["psnr_without_gross"] == pytest.approx(psnr(ref + 0.02, ref))

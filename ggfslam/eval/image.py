@@ -111,6 +111,29 @@ def depth_error_split(depth: np.ndarray, ref: np.ndarray) -> dict:
             "depth_tail_step_cm": float(100.0 * err[tail & near_step].sum() / n)}
 
 
+GROSS_SQ_ERROR = 0.1  # a pixel's mean squared RGB error above this (RMS ~ 81 of 255) is gross
+GROSS_MIN_AREA = 0.0013  # ... and counts when its connected region covers this share of the image (400 px at 640x480)
+COLOUR_SPLIT_KEYS = ("psnr_without_gross", "gross_area_percent")
+
+
+def colour_error_split(img: np.ndarray, ref: np.ndarray) -> dict:
+    """How much of a frame's PSNR is lost to gross-error regions: connected regions of pixels off by more than
+    ``GROSS_SQ_ERROR`` (mean squared over RGB) covering at least ``GROSS_MIN_AREA`` of the image, the signature of
+    content that changes while the camera looks at it (a screen playing video, a person walking by) rather than
+    of blur or small misalignment. ``psnr_without_gross``: the PSNR of img [H, W, 3] against ref over the other
+    pixels; ``gross_area_percent``: the share of the image they cover. A diagnostic beside the PSNR, never
+    instead of it."""
+    se = ((np.asarray(img, np.float64) - np.asarray(ref, np.float64)) ** 2).mean(-1)  # [H, W]
+    gross = (se > GROSS_SQ_ERROR).astype(np.uint8)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(gross, connectivity=8)
+    big = np.nonzero(stats[1:, cv2.CC_STAT_AREA] >= GROSS_MIN_AREA * se.size)[0] + 1  # [B] labels of big regions
+    mask = np.isin(labels, big) if len(big) else np.zeros(se.shape, bool)
+    rest = se[~mask]
+    mse = float(rest.mean()) if rest.size else 0.0
+    return {"psnr_without_gross": float("inf") if mse == 0 else -10.0 * float(np.log10(mse)),
+            "gross_area_percent": float(100.0 * mask.mean())}
+
+
 class LPIPS:
     """LPIPS from a local TorchScript network (``net(x, y)`` on [-1, 1] images); weights are never downloaded."""
 

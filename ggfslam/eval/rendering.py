@@ -5,8 +5,8 @@ import time
 
 import numpy as np
 
-from ggfslam.eval.image import (DEPTH_SPLIT_KEYS, LPIPS, depth_error_split, depth_l1_cm, normal_error_deg, psnr,
-                                ssim_np)
+from ggfslam.eval.image import (COLOUR_SPLIT_KEYS, DEPTH_SPLIT_KEYS, LPIPS, colour_error_split, depth_error_split,
+                                depth_l1_cm, normal_error_deg, psnr, ssim_np)
 from ggfslam.geometry.depth import normals_from_depth
 from ggfslam.mapping.keyframe_store import resize_depth, resize_rgbd
 
@@ -34,7 +34,8 @@ def render_metrics(mapper, dataset, poses: np.ndarray, indices: np.ndarray, intr
     (``frame.meta['depth_gt']``, synthetic sequences with depth noise), else the sensor depth; with
     ``depth_gt`` the L1 against the sensor depth is also reported (``depth_l1_sensor_cm``). Where the depth L1
     comes from (holes, the tail beyond 5 cm and its part at depth discontinuities, the median) is split out as
-    ``depth_error_split`` does. Returns the means, the render speed and the per-frame values."""
+    ``depth_error_split`` does; what gross-error regions (changing content) take from the PSNR as
+    ``colour_error_split`` does. Returns the means, the render speed and the per-frame values."""
     kf_frames = {k: mapper.store.frame_index(k) for k in mapper.store.ids()}
     exposure = nearest_keyframes(np.asarray(indices), kf_frames)
     rows, render_s = [], 0.0
@@ -48,7 +49,7 @@ def render_metrics(mapper, dataset, poses: np.ndarray, indices: np.ndarray, intr
         render_s += time.perf_counter() - t0
         img = out.color.numpy()
         ref_normals = normals_from_depth(depth, intr.fx, intr.fy, intr.cx, intr.cy)
-        row = {"index": int(i), "psnr": psnr(img, rgb), "ssim": ssim_np(img, rgb),
+        row = {"index": int(i), "psnr": psnr(img, rgb), **colour_error_split(img, rgb), "ssim": ssim_np(img, rgb),
                "depth_l1_cm": depth_l1_cm(out.depth.numpy(), depth),
                "normal_error_deg": normal_error_deg(out.normals.numpy(), ref_normals),
                **depth_error_split(out.depth.numpy(), depth)}
@@ -63,7 +64,8 @@ def render_metrics(mapper, dataset, poses: np.ndarray, indices: np.ndarray, intr
         vals = [r[key] for r in rows if key in r and np.isfinite(r[key])]
         return float(np.mean(vals)) if vals else float("nan")
 
-    res = {"psnr": mean("psnr"), "ssim": mean("ssim"), "depth_l1_cm": mean("depth_l1_cm"),
+    res = {"psnr": mean("psnr"), **{k: mean(k) for k in COLOUR_SPLIT_KEYS}, "ssim": mean("ssim"),
+           "depth_l1_cm": mean("depth_l1_cm"),
            "normal_error_deg": mean("normal_error_deg"),
            **{k: mean(k) for k in DEPTH_SPLIT_KEYS},
            **({"depth_l1_sensor_cm": mean("depth_l1_sensor_cm")} if any("depth_l1_sensor_cm" in r for r in rows) else {}),

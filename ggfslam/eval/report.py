@@ -25,6 +25,8 @@ ROWS = [
     ("live", "latency_ms_p95", "live: arrival to pose p95 [ms]", "{:.0f}"),
     ("live", "stopped_by", "live: input ended by", "{}"),
     ("rendering", "psnr", "PSNR [dB] at {res}", "{:.2f}"),
+    ("rendering", "psnr_without_gross", "  PSNR without gross-error regions [dB]", "{:.2f}"),
+    ("rendering", "gross_area_percent", "  ... regions' share of the image [%]", "{:.2f}"),
     ("rendering", "ssim", "SSIM at {res}", "{:.3f}"),
     ("rendering", "lpips", "LPIPS", "{}"),
     ("rendering", "depth_l1_cm", "Depth L1 [cm]", "{:.2f}"),
