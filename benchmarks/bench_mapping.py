@@ -4,7 +4,8 @@ mapper's raw throughput.
 Sequences (positional; same forms as ``bench_tracking.py``): a dataset folder, a config YAML,
 ``synthetic:N``, ``synthetic-loop:N`` or ``replica:N`` (Replica office0 rendered from the shared mesh,
 600x340). Each is one ``ggfslam.slam.run`` (tracking + mapping, sequential mode unless ``--set
-mapping.concurrent=true``) in a fresh process. Reported per run: PSNR, SSIM, depth L1 (cm; against the
+mapping.concurrent=true``) in a fresh process. Reported per run: PSNR (and without gross-error regions:
+``psnr_without_gross``), SSIM, depth L1 (cm; against the
 noise-free mesh depth where the sequence has it) and normal error (degrees) over every
 ``eval_stride``-th frame rendered from the estimated poses, the render resolution, ATE RMSE (cm), mapping
 iterations and iterations/s, anchors, Gaussians, wall seconds (whole run, outputs included), peak RSS (MiB)
@@ -53,7 +54,8 @@ def _run_one(raw: dict, out_dir: str) -> dict:
     total = time.perf_counter() - t0
     r, mp, traj, system = m["rendering"], m["mapping"], m.get("trajectory", {}), m["system"]
     return {
-        "psnr": r["psnr"], "ssim": r["ssim"], "depth_l1_cm": r["depth_l1_cm"],
+        "psnr": r["psnr"], "psnr_without_gross": r.get("psnr_without_gross"), "ssim": r["ssim"],
+        "depth_l1_cm": r["depth_l1_cm"],
         "normal_error_deg": r.get("normal_error_deg"), "lpips": r["lpips"],
         "eval_frames": r["frames"], "eval_resolution": f"{r['width']}x{r['height']}",
         "train_resolution": f"{mp['train_width']}x{mp['train_height']}",

@@ -125,7 +125,7 @@ def colour_error_split(img: np.ndarray, ref: np.ndarray) -> dict:
     instead of it."""
     se = ((np.asarray(img, np.float64) - np.asarray(ref, np.float64)) ** 2).mean(-1)  # [H, W]
     gross = (se > GROSS_SQ_ERROR).astype(np.uint8)
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(gross, connectivity=8)
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(gross, connectivity=8)
     big = np.nonzero(stats[1:, cv2.CC_STAT_AREA] >= GROSS_MIN_AREA * se.size)[0] + 1  # [B] labels of big regions
     mask = np.isin(labels, big) if len(big) else np.zeros(se.shape, bool)
     rest = se[~mask]
