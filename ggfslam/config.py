@@ -204,6 +204,12 @@ class TrackingConfig(_Section):
     """Keypoint noise (px) at pyramid level 0; multiplied by the level's scale."""
     keyframe_max_frames: int = 20
     """Insert a keyframe at least every this many frames."""
+    keyframe_sharpness_ratio: float = 0.0
+    """When > 0, a keyframe due only to ``keyframe_max_frames`` waits for a frame at least this sharp relative to the
+    median sharpness (variance of the Laplacian) of the last ``2 * keyframe_max_frames`` frames, for at most
+    ``keyframe_max_frames`` more frames: motion-blurred keyframes blur the map. Keyframes that tracking needs
+    (too few points tracked, moved or turned too far) never wait. 0 = off (at 0.9 on the 7-Scenes kitchen, whose blur
+    lasts stretches rather than single frames: no gain, see README)."""
     keyframe_tracked_ratio: float = 0.75
     """Insert a keyframe when fewer than this fraction of the reference keyframe's map points are tracked."""
     keyframe_translation: float = 0.15
@@ -232,6 +238,14 @@ class TrackingConfig(_Section):
     """Dense odometry: frames wider than this are downscaled (intrinsics scaled to match)."""
     constant_velocity: bool = False
     """Baseline only: start each odometry from the previous frame's motion."""
+
+    @model_validator(mode="after")
+    def _check(self) -> "TrackingConfig":
+        if self.keyframe_max_frames < 1:
+            raise ValueError("keyframe_max_frames must be >= 1")
+        if not 0 <= self.keyframe_sharpness_ratio <= 2:
+            raise ValueError("keyframe_sharpness_ratio must be in [0, 2] (0 = off; 1 = at least the median sharpness)")
+        return self
 
 
 class BackendConfig(_Section):

@@ -177,3 +177,53 @@ def test_real_tum_cabinet_keyframes_tracked_within_target(data_root):
     stamps, poses, lost = tracker.trajectory()
     assert not lost.any()
     assert trajectory_metrics(stamps, poses, ds.timestamps, ds.gt_poses)["ate_rmse_cm"] <= 8.0
+
+
+def test_sharpness_falls_with_blur_and_is_zero_on_a_flat_image():
+    from ggfslam.frontend.sharpness import sharpness
+    import cv2
+
+    rgb = SyntheticSequence(n_frames=1, width=320, height=240, seed=5)[0].rgb
+    sharp = sharpness(rgb)
+    blurred = [sharpness(cv2.GaussianBlur(rgb, (0, 0), s)) for s in (1.0, 2.0, 4.0)]
+    assert sharp > blurred[0] > blurred[1] > blurred[2] > 0
+    assert sharpness(np.full((240, 320, 3), 0.5, np.float32)) == 0.0
+    with pytest.raises(ValueError, match="colour image"):
+        sharpness(rgb[..., 0])
+
+
+@pytest.mark.parametrize("ratio", [0.0, 0.8], ids=["gate-off", "gate-on"])
+def test_keyframes_due_by_time_wait_for_a_sharp_frame(ratio):
+    import cv2
+
+    seq = SyntheticSequence(n_frames=40, width=320, height=240, trajectory="orbit", seed=3)
+    frames = list(seq)
+    blurred = {5, 6, 15, 16, 17, 18, 19, 20, 21, 22, 23, 24, 25, 26}  # a short and a long stretch of motion blur
+    for i in blurred:
+        frames[i] = Frame(i, frames[i].timestamp, cv2.GaussianBlur(frames[i].rgb, (0, 0), 2.5), frames[i].depth,
+                          frames[i].T_wc)
+    # only the time trigger: no tracked-ratio, distance or angle keyframes on this slow orbit
+    tcfg = TrackingConfig(n_features=1000, keyframe_max_frames=5, keyframe_sharpness_ratio=ratio,
+                          keyframe_tracked_ratio=0.0, keyframe_translation=10.0, keyframe_rotation_deg=180.0)
+    tracker, results = _track(frames, seq.camera, tcfg)
+    assert all(r.ok for r in results)
+    kf_frames = [i for i, r in enumerate(results) if r.keyframe]
+    if ratio == 0:
+        assert kf_frames == list(range(0, 40, 5))
+    else:
+        # 5 and 6 are skipped for 7; in the long stretch the blurred frames outnumber the sharp ones among the
+        # last 10 by frame 20, which then passes; so does 25 (all 10 blurred: waiting would not help)
+        assert kf_frames[:4] == [0, 7, 12, 20], kf_frames
+        assert not set(kf_frames[:3]) & blurred
+        assert all(b - a <= 10 for a, b in zip(kf_frames, kf_frames[1:]))
+    stamps, poses, _ = tracker.trajectory()
+    assert trajectory_metrics(stamps, poses, seq.timestamps, seq.poses)["ate_rmse_cm"] < 1.0
+    # the sharpness history goes into checkpoints and comes back through the restricted unpickler
+    import pickle
+
+    from ggfslam.safe_load import load_tracker_pickle
+
+    back = load_tracker_pickle(pickle.dumps(tracker))
+    assert back.recent_sharpness == tracker.recent_sharpness and len(back.recent_sharpness) == (10 if ratio else 0)
+    del back.__dict__["recent_sharpness"]  # a checkpoint written before the history existed
+    assert load_tracker_pickle(pickle.dumps(back)).recent_sharpness == []

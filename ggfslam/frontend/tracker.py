@@ -22,6 +22,7 @@ from ggfslam.frontend.dense_odometry import DenseOdometry
 from ggfslam.frontend.features import Features, OrbExtractor
 from ggfslam.frontend.matching import match_projected, match_ratio
 from ggfslam.frontend.pose_refine import refine_pose
+from ggfslam.frontend.sharpness import sharpness
 from ggfslam.frontend.types import TrackingState, TrackResult
 from ggfslam.geometry.pnp import pnp_ransac
 from ggfslam.geometry.se3 import invert, rotation_angle
@@ -59,6 +60,11 @@ class OrbTracker:
         self.next_kf_id = 0
         self.dense = DenseOdometry(camera, cfg) if cfg.dense_fallback else None
         self.last_frame: Frame | None = None
+        self.recent_sharpness: list[float] = []  # of the last 2 * keyframe_max_frames frames, this one last
+
+    def __setstate__(self, state: dict) -> None:  # checkpoints written before an attribute existed still resume
+        state.setdefault("recent_sharpness", [])
+        self.__dict__.update(state)
 
     # --- geometry helpers ---------------------------------------------------------------------------
     def _sigma(self, octave: np.ndarray) -> np.ndarray:
@@ -230,8 +236,19 @@ class OrbTracker:
         self.backend.insert_keyframe(kf, frame.depth)
         return kf
 
+    def _due_by_time(self, frame: Frame) -> bool:
+        """``keyframe_max_frames`` have passed and, with ``keyframe_sharpness_ratio``, this frame is not blurred
+        against the recent frames (or has waited ``keyframe_max_frames`` more already)."""
+        since = frame.index - self.last_kf_frame
+        if since < self.cfg.keyframe_max_frames:
+            return False
+        r = self.cfg.keyframe_sharpness_ratio
+        if r <= 0 or since >= 2 * self.cfg.keyframe_max_frames or not self.recent_sharpness:
+            return True
+        return self.recent_sharpness[-1] >= r * float(np.median(self.recent_sharpness))
+
     def _need_keyframe(self, frame: Frame, T: np.ndarray, n_tracked: int) -> bool:
-        if frame.index - self.last_kf_frame >= self.cfg.keyframe_max_frames:
+        if self._due_by_time(frame):
             return True
         ref = self.map.keyframes[self.ref_kf]
         with self.map.lock:
@@ -252,6 +269,8 @@ class OrbTracker:
         F = self.extractor.extract(frame.rgb, frame.depth)
         if self.state == TrackingState.NOT_INITIALIZED:
             return self._initialize(frame, F)
+        if self.cfg.keyframe_sharpness_ratio > 0:
+            self.recent_sharpness = [*self.recent_sharpness, sharpness(frame.rgb)][-2 * self.cfg.keyframe_max_frames:]
         # bundle adjustment or a loop closure may have moved the reference keyframe since the last frame
         self.last_T = self.map.keyframes[self.records[-1].ref_kf].T_wc @ self.records[-1].T_ref_cur
         res = None
