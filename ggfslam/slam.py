@@ -174,11 +174,15 @@ class _RunState:
 class _StopRequests:
     """Ctrl-C or SIGTERM while frames are tracked: the first stops the run after the current frame, with what it
     has saved and a checkpoint to ``--resume`` from; a second stops it at once, as does one outside the tracking
-    loop (finishing, writing outputs). Signals are only caught in the main thread."""
+    loop (finishing, writing outputs). During the final refinement the first one ends the training after the
+    current step (``is_set``; the run is then saved as stopped), so the stop never lands inside a compiled kernel,
+    which would turn it into a SystemError; another one stops at once. Signals are only caught in the main thread."""
 
     def __init__(self):
         self.requested: str | None = None
         self.tracking = False  # inside the frame loop, where a stop can wait for the frame's end
+        self.refining = False  # inside the final refinement, where a stop can wait for the step's end
+        self.halted: str | None = None  # the signal that ended the final refinement
         self._previous: dict = {}
 
     def __enter__(self) -> _StopRequests:
@@ -188,10 +192,19 @@ class _StopRequests:
         return self
 
     def _handle(self, signum, _frame) -> None:
+        if self.refining and self.halted is None:
+            self.halted = signal.Signals(signum).name
+            log.warning("%s: ending the final refinement after this step and saving the run (again to stop at once)",
+                        self.halted)
+            return
         if self.requested is not None or not self.tracking:
             raise KeyboardInterrupt(signal.Signals(signum).name)
         self.requested = signal.Signals(signum).name
         log.warning("%s: stopping after this frame and saving the run (again to stop at once)", self.requested)
+
+    def is_set(self) -> bool:
+        """The final refinement was asked to stop."""
+        return self.halted is not None
 
     def __exit__(self, *exc) -> None:
         for sig, handler in self._previous.items():
@@ -239,7 +252,7 @@ def run(config: Config, out_dir: str | Path, overwrite: bool = False, progress: 
             if source is not None:
                 _warm_up_kernels(config, dataset.camera, st.mapper is not None)
             _track_sequence(config, dataset, run_dir, st, stop, progress, observer, source)
-            _finish_sequence(config, st)
+            _finish_sequence(config, st, stop)
             metrics = _write_outputs(config, dataset, run_dir, st)
         info = read_json(run_dir / RUN_INFO_FILE)
         info.update(status="finished", finished=datetime.now(timezone.utc).isoformat(timespec="seconds"))
@@ -471,7 +484,7 @@ def _skip_frame(dataset: RGBDDataset, st: _RunState, i: int, e: DatasetError, ma
                                    f"{', ...' if len(st.skipped) > 10 else ''})", e.line)
 
 
-def _finish_sequence(config: Config, st: _RunState) -> None:
+def _finish_sequence(config: Config, st: _RunState, stop: _StopRequests) -> None:
     """Let the backend and the mapper finish their queues, then the final map refinement."""
     st.consistent = None
     t0 = time.perf_counter()
@@ -485,21 +498,28 @@ def _finish_sequence(config: Config, st: _RunState) -> None:
     if st.mapper is not None:
         with st.timer("final_refinement"):
             st.mapper.sync_poses()  # the final global BA may have moved keyframes
-            if config.mapping.final_seconds > 0:
-                st.mapper.train(sys.maxsize, stop=_Deadline(config.mapping.final_seconds))
-            else:
-                st.mapper.train(config.mapping.final_iterations)
+            stop.refining = True
+            try:
+                if config.mapping.final_seconds > 0:
+                    st.mapper.train(sys.maxsize, stop=_Deadline(config.mapping.final_seconds, also=stop))
+                else:
+                    st.mapper.train(config.mapping.final_iterations, stop=stop)
+            finally:
+                stop.refining = False
+            if stop.halted:
+                raise KeyboardInterrupt(f"{stop.halted} during the final refinement")
     st.wall += time.perf_counter() - t0
 
 
 class _Deadline:
-    """A stop signal (``is_set``) that turns on ``seconds`` after it is made."""
+    """A stop signal (``is_set``) that turns on ``seconds`` after it is made, or with ``also``."""
 
-    def __init__(self, seconds: float):
+    def __init__(self, seconds: float, also: _StopRequests | None = None):
         self.end = time.perf_counter() + seconds
+        self.also = also
 
     def is_set(self) -> bool:
-        return time.perf_counter() >= self.end
+        return time.perf_counter() >= self.end or (self.also is not None and self.also.is_set())
 
 
 def _write_trajectories(run_dir: Path, st: _RunState, note: str = ""):
