@@ -296,7 +296,9 @@ def test_run_view_serves_live_then_the_folder_until_ctrl_c(tmp_path):
            "--set", "dataset.synthetic.width=160", "--set", "dataset.synthetic.height=120",
            "--set", "mapping.iterations_per_keyframe=10", "--set", "mapping.final_iterations=10"]
     env = {**os.environ, "GGFSLAM_CACHE": str(tmp_path / "cache"), "COLUMNS": "200"}
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    # Ctrl-C as in a terminal: a pytest started in the background (`&`, nohup) would hand the run SIGINT ignored
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     lines = []
     try:
         for line in proc.stdout:
