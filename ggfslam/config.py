@@ -513,6 +513,14 @@ class GGFConfig(_Section):
     default (2026-12-02): on the noisy synthetic room it lowers the mesh depth L1 1.97 -> 1.92 cm and the mesh
     normal error 25.4 -> 16.5 deg but costs 0.7 dB PSNR; on Replica office0 it costs 0.5 dB and raises the
     depth L1 0.85 -> 1.09 cm; on fr3/cabinet 23.46 -> 23.22 dB, depth L1 3.66 -> 3.67 cm."""
+    plane_depth: bool = False
+    """Surfels (AMR's children) render the depth where each pixel's ray meets their plane instead of their
+    centre's depth (``ggfslam.render.plane_depth``), in training, evaluation and GCGR. Better geometry for some
+    colour and time, so off by default. Runs of 2026-12-04 (field on, off -> on): Replica office0 (its config)
+    depth L1 0.574 -> 0.533 cm (the field off: 0.574), median 0.28 -> 0.22 cm, PSNR 34.06 -> 33.74 dB, mapping
+    5.9 -> 5.1 steps/s; synthetic room (``bench_ggf.py synthetic:120``) mesh depth L1 2.00 -> 1.93 cm (off:
+    2.12), sensor 3.44 -> 3.39 cm (off: 3.53), 21.60 -> 21.56 dB; fr3/cabinet depth L1 3.90 -> 3.80 cm,
+    23.44 -> 23.53 dB, wall 318 -> 334 s."""
     lambda_morph: float = 0.1
     """Weight of L_morph in the mapping loss."""
     lambda_dir: float = 1.0

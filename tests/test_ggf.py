@@ -361,6 +361,41 @@ def test_mapper_with_field_renders_planar_weight_and_resumes(sequence, tmp_path)
     assert torch.equal(m2.ggf.p2d(), m.ggf.p2d())
 
 
+def test_mapper_with_plane_depth_renders_surfel_planes(sequence):
+    """With ``ggf.plane_depth`` the map's depth is where each pixel's ray meets its surfels' planes (the field's
+    normals through the children's means; written here in world coordinates, d = n . (mean - camera centre)),
+    the planar-weight channel still comes back alone, and training runs on that depth."""
+    from ggfslam.render.plane_depth import plane_depth
+
+    ds, gt = sequence, sequence.gt_poses
+    poses = {0: gt[0]}
+    m = _mapper(ds, poses, plane_depth=True)
+    f = ds[0]
+    m.add_keyframe(0, 0, f.rgb, f.depth)
+    m.train(10, focus=0)
+    assert np.isfinite(m.last_losses["depth"]) and m.last_losses["depth"] > 0
+    T_wc = gt[3]
+    out = m.render(T_wc)
+    assert out.extras.shape[-1] == 1  # P_2D only: the plane channels are consumed
+    with torch.no_grad():
+        g, _ = m._decode_view(T_wc, m.intr)
+        planar = m.ggf.planar()[g.anchor_index]
+        assert 0 < int(planar.sum()) < len(g)
+        n_w = m.ggf.geom.normals[g.anchor_index].double()
+        d = (n_w * (g.means.double() - torch.from_numpy(T_wc[:3, 3]))).sum(-1)
+        sign = torch.where(d < 0, -1.0, 1.0).double()
+        R_cw = torch.from_numpy(T_wc[:3, :3].T)
+        n_c = (n_w * sign[:, None]) @ R_cw.T
+        z_c = g.means.double() @ R_cw.T - R_cw @ torch.from_numpy(T_wc[:3, 3])
+        planes = torch.where(planar[:, None], torch.cat([n_c, (d * sign)[:, None]], 1),
+                             torch.cat([torch.zeros_like(n_c[:, :2]), torch.ones_like(d[:, None]), z_c[:, 2:]], 1))
+        ref = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, m.intr,
+                        torch.from_numpy(np.linalg.inv(T_wc)).float(), extras=planes.float(), settings=m.settings)
+        expect = plane_depth(ref.extras, ref.alpha, ref.depth, m.intr, m.settings.depth_min_alpha)
+    assert torch.allclose(out.depth, expect, atol=1e-4)
+    assert float((out.depth - ref.depth).abs().max()) > 1e-3  # tilted surfels: not the centres' depth
+
+
 def test_field_off_is_the_plain_mapper(sequence):
     ds, gt = sequence, sequence.gt_poses
     poses = {0: gt[0]}

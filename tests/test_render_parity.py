@@ -51,6 +51,8 @@ SCENES = {
     "odd_size": (lambda: random_gaussians(120, seed=2), (40.0, 41.0, 15.2, 16.7, 37, 29), 3),
     "thin_diagonal": (lambda: _thin_diagonal(60, seed=3), (60.0, 60.0, 31.5, 23.5, 64, 48), 0),
     "opaque_stack": (lambda: _opaque_stack(90, seed=4), (50.0, 50.0, 24.5, 18.5, 48, 40), 5),
+    # one to four extras take the kernels' four-channel path (padded); five the general loop
+    "five_extras": (lambda: random_gaussians(100, seed=6, n_extras=5), (60.0, 58.0, 31.5, 23.5, 64, 48), 1),
 }
 
 

@@ -45,6 +45,7 @@ from ggfslam.mapping.keyframe_store import KeyframeStore, scaled_intrinsics
 from ggfslam.mapping.loss_kernels import normal_loss_from_depth
 from ggfslam.mapping.losses import depth_loss, photometric_loss
 from ggfslam.render.api import rasterize
+from ggfslam.render.plane_depth import PLANE_CHANNELS, plane_channels, plane_depth
 from ggfslam.render.types import Intrinsics, RenderOutput, RenderSettings
 
 PoseSource = Callable[[], dict[int, np.ndarray]]  # keyframe id -> T_wc [4, 4]
@@ -361,9 +362,7 @@ class Mapper:
                                       and self.view_sink.wants(kf_id, self.iteration)) else None
             p2d = self._planar_channel(g) if sink is not None else None
             l_morph = self.ggf.morph(g) if self.ggf is not None and self.ggf_cfg.lambda_morph > 0 else torch.zeros(())
-            out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, intr,
-                            torch.from_numpy(invert(T_wc)).float(), settings=self.settings,
-                            extras=None if p2d is None else p2d.detach())
+            out = self._rasterize(g, intr, T_wc, None if p2d is None else p2d.detach())
             color = self._expose(out.color, kf_id)
             gt_rgb = torch.from_numpy(np.ascontiguousarray(rgb))
             gt_depth = torch.from_numpy(np.ascontiguousarray(depth))
@@ -399,6 +398,26 @@ class Mapper:
                 self.kf_loss[kf_id] = self.last_losses["photo"]
             return self.last_losses
 
+    def _rasterize(self, g: DecodedGaussians, intr: Intrinsics, T_wc: np.ndarray, p2d: torch.Tensor | None
+                   ) -> RenderOutput:
+        """Render children g at camera-to-world T_wc [4, 4], with the planar-weight channel p2d [G, 1] if given;
+        with ``ggf.plane_depth`` surfels' depth is where each pixel's ray meets their plane."""
+        T_cw = torch.from_numpy(invert(T_wc)).float()
+        if self.ggf is None or not (self.ggf_cfg.amr and self.ggf_cfg.plane_depth):
+            return rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, intr, T_cw, extras=p2d,
+                             settings=self.settings)
+        R = T_cw[:3, :3]
+        mu_c = g.means @ R.T + T_cw[:3, 3]  # [G, 3]
+        normals_c = self.ggf.geom.normals.index_select(0, g.anchor_index) @ R.T  # [G, 3]
+        planes = plane_channels(mu_c, normals_c, self.ggf.planar().index_select(0, g.anchor_index))
+        extras = planes if p2d is None else torch.cat([planes, p2d], 1)
+        out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, intr, T_cw, extras=extras,
+                        settings=self.settings)
+        out.depth = plane_depth(out.extras[..., :PLANE_CHANNELS], out.alpha, out.depth, intr,
+                                self.settings.depth_min_alpha)
+        out.extras = out.extras[..., PLANE_CHANNELS:] if p2d is not None else None
+        return out
+
     def _expose(self, color: torch.Tensor, kf_id: int | None) -> torch.Tensor:
         """Apply a keyframe's affine brightness (or with ``REFERENCE_EXPOSURE`` the keyframes' typical one) to
         a rendered image [H, W, 3] or colours [N, 3]."""
@@ -421,8 +440,7 @@ class Mapper:
         with self.lock:
             g, _ = self._decode_view(T_wc, intr, without_kf)
             p2d = self._planar_channel(g) if planar else None
-            out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, intr,
-                            torch.from_numpy(invert(T_wc)).float(), extras=p2d, settings=self.settings)
+            out = self._rasterize(g, intr, T_wc, p2d)
             out.color = self._expose(out.color, exposure_kf).clamp(0, 1)
             return out
 

@@ -30,7 +30,8 @@ Pipeline (one render)
    ``exp(power)`` comes from multiplicative recurrences (power is quadratic in x and y): libm ``exp``
    runs three times per (Gaussian, tile) pair, or twice per row in "chord" mode for very elongated,
    diagonal ellipses whose box corners would underflow. Channels ``[r, g, b, z, extras...]``; the
-   background goes to the colour channels only.
+   background goes to the colour channels only. Three copies of the pixel loop: no extras, exactly four
+   (the caller pads one to three; features and gradient sums in registers) and any other count.
 5. ``raster_backward`` (parallel over tiles): back to front over each pixel's contributors, with
    the same recurrences (bit-identical alphas), transmittance recovered by division by ``1 - alpha``
    (alpha <= 0.99). Per pixel a single scalar ``R = dL/dC . (what lies behind) + T_final (bg . dL/dC
@@ -527,6 +528,14 @@ def _load_pair(pk, pf, j, x0, x1, y0, y1):
             np.float64(pf[j, 0]), np.float64(pf[j, 1]), np.float64(pf[j, 2]), np.float64(pf[j, 3]))
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _load_extras4(pf, j):
+    """Features 4..7 of pair j as float64 scalars when there are exactly eight (four extras), else zeros."""
+    if pf.shape[1] == 8:
+        return np.float64(pf[j, 4]), np.float64(pf[j, 5]), np.float64(pf[j, 6]), np.float64(pf[j, 7])
+    return 0.0, 0.0, 0.0, 0.0
+
+
 @njit(cache=True, nogil=True, inline="always", fastmath=FMA)
 def _pair_start(mx, my, ca, cb, cc, gx0, gy0):
     """Recurrence mode: at pixel (gx0, gy0) returns G = exp(power), the x-step factor
@@ -589,6 +598,7 @@ def raster_forward(pk, pf, pidx, tile_start, order, bg, width, height, depth_min
                     Grow, Erow, Fy = 0.0, 0.0, 0.0
                 else:
                     Grow, Erow, Fy = _pair_start(mx, my, ca, cb, cc, gx0, gy0)
+                f4, f5, f6, f7 = _load_extras4(pf, j)
                 hit = False
                 for y in range(gy0, gy1 + 1):
                     if chord:
@@ -600,7 +610,35 @@ def raster_forward(pk, pf, pidx, tile_start, order, bg, width, height, depth_min
                         Erow *= eb
                     work += max(0, sx1 - sx0 + 1)
                     prow = (y - y0) * TILE - x0
-                    if C == 4:  # no extras: a lean copy of the loop
+                    if C == 8:  # four extras (fewer are padded to four): the features in registers
+                        for x in range(sx0, sx1 + 1):
+                            g = G
+                            G *= E
+                            E *= ea
+                            p = np.uint64(prow + x)
+                            tp = T[p]
+                            alpha = min(ALPHA_MAX, o * g)
+                            alpha = alpha if alpha >= ALPHA_MIN else 0.0
+                            nt = tp * (1.0 - alpha)
+                            if nt < T_MIN and tp != 0.0:
+                                Tstop[p] = tp
+                                T[p] = 0.0
+                                ndone += 1
+                                continue
+                            w = alpha * tp
+                            q = p * uC
+                            acc[q] += f0 * w
+                            acc[q + np.uint64(1)] += f1 * w
+                            acc[q + np.uint64(2)] += f2 * w
+                            acc[q + np.uint64(3)] += f3 * w
+                            acc[q + np.uint64(4)] += f4 * w
+                            acc[q + np.uint64(5)] += f5 * w
+                            acc[q + np.uint64(6)] += f6 * w
+                            acc[q + np.uint64(7)] += f7 * w
+                            T[p] = nt
+                            lst[p] = max(lst[p], (k + 1) * (w > 0.0))
+                            hit |= w > 0.0
+                    elif C == 4:  # no extras: a lean copy of the loop
                         for x in range(sx0, sx1 + 1):
                             g = G
                             G *= E
@@ -761,6 +799,11 @@ def raster_backward(pk, pf, pidx, pair_slot, tile_start, order, bg, width, heigh
                 gf3 = 0.0
                 for c in range(4, C):
                     gf[c] = 0.0
+                f4, f5, f6, f7 = _load_extras4(pf, j)
+                gf4 = 0.0
+                gf5 = 0.0
+                gf6 = 0.0
+                gf7 = 0.0
                 for y in range(gy0, gy1 + 1):
                     dy = my - y
                     if chord:
@@ -774,7 +817,50 @@ def raster_backward(pk, pf, pidx, pair_slot, tile_start, order, bg, width, heigh
                     s0 = 0.0
                     s1 = 0.0
                     s2 = 0.0
-                    if C == 4:  # no extras: a lean copy of the loop (fewer live registers)
+                    if C == 8:  # four extras (fewer are padded to four): the features in registers
+                        for x in range(sx0, sx1 + 1):
+                            g = G
+                            G *= E
+                            E *= ea
+                            p = np.uint64(prow + x)
+                            if k >= lst[p]:
+                                continue
+                            ga = o * g
+                            alpha = min(ALPHA_MAX, ga)
+                            if alpha < ALPHA_MIN:
+                                continue
+                            iom = 1.0 / (1.0 - alpha)
+                            ti = T[p] * iom
+                            w = alpha * ti
+                            q = p * uC
+                            g0 = gp[q]
+                            g1 = gp[q + np.uint64(1)]
+                            g2 = gp[q + np.uint64(2)]
+                            g3 = gp[q + np.uint64(3)]
+                            g4 = gp[q + np.uint64(4)]
+                            g5 = gp[q + np.uint64(5)]
+                            g6 = gp[q + np.uint64(6)]
+                            g7 = gp[q + np.uint64(7)]
+                            fg = f0 * g0 + f1 * g1 + f2 * g2 + f3 * g3 + f4 * g4 + f5 * g5 + f6 * g6 + f7 * g7
+                            gf0 += w * g0
+                            gf1 += w * g1
+                            gf2 += w * g2
+                            gf3 += w * g3
+                            gf4 += w * g4
+                            gf5 += w * g5
+                            gf6 += w * g6
+                            gf7 += w * g7
+                            dlda = ti * fg - Rr[p] * iom
+                            Rr[p] += fg * w
+                            T[p] = ti
+                            if ga <= ALPHA_MAX:
+                                dx = mx - x
+                                dpow = ga * dlda
+                                s0 += dpow
+                                t1 = dpow * dx
+                                s1 += t1
+                                s2 += t1 * dx
+                    elif C == 4:  # no extras: a lean copy of the loop (fewer live registers)
                         for x in range(sx0, sx1 + 1):
                             g = G
                             G *= E
@@ -871,6 +957,8 @@ def raster_backward(pk, pf, pidx, pair_slot, tile_start, order, bg, width, heigh
                 pg[sl, 7] = gf1
                 pg[sl, 8] = gf2
                 pg[sl, 9] = gf3
+                if C == 8:
+                    gf[4], gf[5], gf[6], gf[7] = gf4, gf5, gf6, gf7
                 for c in range(4, C):
                     pg[sl, 6 + c] = gf[c]
 
