@@ -515,7 +515,8 @@ class GGFConfig(_Section):
     depth L1 0.85 -> 1.09 cm; on fr3/cabinet 23.46 -> 23.22 dB, depth L1 3.66 -> 3.67 cm."""
     plane_depth: bool = False
     """Surfels (AMR's children) render the depth where each pixel's ray meets their plane instead of their
-    centre's depth (``ggfslam.render.plane_depth``), in training, evaluation and GCGR. Better geometry for some
+    centre's depth (``ggfslam.render.plane_depth``), in training, evaluation and GCGR (no effect without ``amr``,
+    so ablations can keep it set). Better geometry for some
     colour and time, so off by default. Runs of 2026-12-04 (field on, off -> on): Replica office0 (its config)
     depth L1 0.574 -> 0.533 cm (the field off: 0.574), median 0.28 -> 0.22 cm, PSNR 34.06 -> 33.74 dB, mapping
     5.9 -> 5.1 steps/s; synthetic room (``bench_ggf.py synthetic:120``) mesh depth L1 2.00 -> 1.93 cm (off:
