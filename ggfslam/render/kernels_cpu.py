@@ -31,7 +31,9 @@ Pipeline (one render)
    runs three times per (Gaussian, tile) pair, or twice per row in "chord" mode for very elongated,
    diagonal ellipses whose box corners would underflow. Channels ``[r, g, b, z, extras...]``; the
    background goes to the colour channels only. Three copies of the pixel loop: no extras, exactly four
-   (the caller pads one to three; features and gradient sums in registers) and any other count.
+   (the caller pads one to three; features and gradient sums in registers) and any other count; they
+   differ only in how features are summed and share the per-pixel step (``_blend``; backward
+   ``_unblend``, ``_unblend_grad``).
 5. ``raster_backward`` (parallel over tiles): back to front over each pixel's contributors, with
    the same recurrences (bit-identical alphas), transmittance recovered by division by ``1 - alpha``
    (alpha <= 0.99). Per pixel a single scalar ``R = dL/dC . (what lies behind) + T_final (bg . dL/dC
@@ -548,6 +550,53 @@ def _pair_start(mx, my, ca, cb, cc, gx0, gy0):
     return G, E, F
 
 
+@njit(cache=True, nogil=True, inline="always", fastmath=FMA)
+def _blend(T, Tstop, p, o, g):
+    """Front-to-back step of a Gaussian (opacity o, exp(power) g) at pixel p: returns its blending weight
+    alpha * T and updates T[p]; returns -1 when the pixel stops here instead (T would fall below T_MIN: this
+    Gaussian is not blended, T[p] becomes 0 and Tstop[p] keeps the final transmittance)."""
+    tp = T[p]
+    alpha = min(ALPHA_MAX, o * g)
+    alpha = alpha if alpha >= ALPHA_MIN else 0.0
+    nt = tp * (1.0 - alpha)
+    if nt < T_MIN and tp != 0.0:
+        Tstop[p] = tp
+        T[p] = 0.0
+        return -1.0
+    T[p] = nt
+    return alpha * tp
+
+
+@njit(cache=True, nogil=True, inline="always", fastmath=FMA)
+def _unblend(T, p, ga):
+    """Back-to-front step at pixel p of a Gaussian with unclamped alpha ga: (weight, transmittance in front of
+    it, 1 / (1 - alpha)), the transmittance recovered from T[p] (behind it) by the same arithmetic as
+    ``_blend``; weight -1 where ``_blend`` blended nothing (alpha below ALPHA_MIN)."""
+    alpha = min(ALPHA_MAX, ga)
+    if alpha < ALPHA_MIN:
+        return -1.0, 0.0, 0.0
+    iom = 1.0 / (1.0 - alpha)
+    ti = T[p] * iom
+    return alpha * ti, ti, iom
+
+
+@njit(cache=True, nogil=True, inline="always", fastmath=FMA)
+def _unblend_grad(T, Rr, p, fg, w, ti, iom, ga, dx, s0, s1, s2):
+    """Finish ``_unblend``'s step given fg = features . dL/dpixel: moves T[p] and the pixel's remainder Rr[p] in
+    front of the Gaussian and adds dL/dpower (times 1, dx, dx^2) to the row sums (s0, s1, s2), which it returns.
+    The alpha clamp has zero gradient where active."""
+    dlda = ti * fg - Rr[p] * iom
+    Rr[p] += fg * w
+    T[p] = ti
+    if ga <= ALPHA_MAX:
+        dpow = ga * dlda
+        s0 += dpow
+        t1 = dpow * dx
+        s1 += t1
+        s2 += t1 * dx
+    return s0, s1, s2
+
+
 @njit(cache=True, nogil=True, parallel=True, fastmath=FMA)
 def raster_forward(pk, pf, pidx, tile_start, order, bg, width, height, depth_min_alpha, color, depth_raw, extras, depth,
                    tfinal, last, work_bwd, nworkers):
@@ -616,16 +665,10 @@ def raster_forward(pk, pf, pidx, tile_start, order, bg, width, height, depth_min
                             G *= E
                             E *= ea
                             p = np.uint64(prow + x)
-                            tp = T[p]
-                            alpha = min(ALPHA_MAX, o * g)
-                            alpha = alpha if alpha >= ALPHA_MIN else 0.0
-                            nt = tp * (1.0 - alpha)
-                            if nt < T_MIN and tp != 0.0:
-                                Tstop[p] = tp
-                                T[p] = 0.0
+                            w = _blend(T, Tstop, p, o, g)
+                            if w < 0.0:
                                 ndone += 1
                                 continue
-                            w = alpha * tp
                             q = p * uC
                             acc[q] += f0 * w
                             acc[q + np.uint64(1)] += f1 * w
@@ -635,7 +678,6 @@ def raster_forward(pk, pf, pidx, tile_start, order, bg, width, height, depth_min
                             acc[q + np.uint64(5)] += f5 * w
                             acc[q + np.uint64(6)] += f6 * w
                             acc[q + np.uint64(7)] += f7 * w
-                            T[p] = nt
                             lst[p] = max(lst[p], (k + 1) * (w > 0.0))
                             hit |= w > 0.0
                     elif C == 4:  # no extras: a lean copy of the loop
@@ -644,22 +686,15 @@ def raster_forward(pk, pf, pidx, tile_start, order, bg, width, height, depth_min
                             G *= E
                             E *= ea
                             p = np.uint64(prow + x)
-                            tp = T[p]
-                            alpha = min(ALPHA_MAX, o * g)
-                            alpha = alpha if alpha >= ALPHA_MIN else 0.0
-                            nt = tp * (1.0 - alpha)
-                            if nt < T_MIN and tp != 0.0:
-                                Tstop[p] = tp
-                                T[p] = 0.0
+                            w = _blend(T, Tstop, p, o, g)
+                            if w < 0.0:
                                 ndone += 1
                                 continue
-                            w = alpha * tp
                             q = p * uC
                             acc[q] += f0 * w
                             acc[q + np.uint64(1)] += f1 * w
                             acc[q + np.uint64(2)] += f2 * w
                             acc[q + np.uint64(3)] += f3 * w
-                            T[p] = nt
                             lst[p] = max(lst[p], (k + 1) * (w > 0.0))
                             hit |= w > 0.0
                     else:
@@ -668,16 +703,10 @@ def raster_forward(pk, pf, pidx, tile_start, order, bg, width, height, depth_min
                             G *= E
                             E *= ea
                             p = np.uint64(prow + x)
-                            tp = T[p]
-                            alpha = min(ALPHA_MAX, o * g)
-                            alpha = alpha if alpha >= ALPHA_MIN else 0.0
-                            nt = tp * (1.0 - alpha)
-                            if nt < T_MIN and tp != 0.0:
-                                Tstop[p] = tp
-                                T[p] = 0.0
+                            w = _blend(T, Tstop, p, o, g)
+                            if w < 0.0:
                                 ndone += 1
                                 continue
-                            w = alpha * tp
                             q = p * uC
                             acc[q] += f0 * w
                             acc[q + np.uint64(1)] += f1 * w
@@ -685,7 +714,6 @@ def raster_forward(pk, pf, pidx, tile_start, order, bg, width, height, depth_min
                             acc[q + np.uint64(3)] += f3 * w
                             for c in range(4, C):
                                 acc[q + np.uint64(c)] += pf[j, c] * w
-                            T[p] = nt
                             lst[p] = max(lst[p], (k + 1) * (w > 0.0))
                             hit |= w > 0.0
                 if hit:
@@ -826,12 +854,9 @@ def raster_backward(pk, pf, pidx, pair_slot, tile_start, order, bg, width, heigh
                             if k >= lst[p]:
                                 continue
                             ga = o * g
-                            alpha = min(ALPHA_MAX, ga)
-                            if alpha < ALPHA_MIN:
+                            w, ti, iom = _unblend(T, p, ga)
+                            if w < 0.0:
                                 continue
-                            iom = 1.0 / (1.0 - alpha)
-                            ti = T[p] * iom
-                            w = alpha * ti
                             q = p * uC
                             g0 = gp[q]
                             g1 = gp[q + np.uint64(1)]
@@ -850,16 +875,7 @@ def raster_backward(pk, pf, pidx, pair_slot, tile_start, order, bg, width, heigh
                             gf5 += w * g5
                             gf6 += w * g6
                             gf7 += w * g7
-                            dlda = ti * fg - Rr[p] * iom
-                            Rr[p] += fg * w
-                            T[p] = ti
-                            if ga <= ALPHA_MAX:
-                                dx = mx - x
-                                dpow = ga * dlda
-                                s0 += dpow
-                                t1 = dpow * dx
-                                s1 += t1
-                                s2 += t1 * dx
+                            s0, s1, s2 = _unblend_grad(T, Rr, p, fg, w, ti, iom, ga, mx - x, s0, s1, s2)
                     elif C == 4:  # no extras: a lean copy of the loop (fewer live registers)
                         for x in range(sx0, sx1 + 1):
                             g = G
@@ -869,12 +885,9 @@ def raster_backward(pk, pf, pidx, pair_slot, tile_start, order, bg, width, heigh
                             if k >= lst[p]:
                                 continue
                             ga = o * g
-                            alpha = min(ALPHA_MAX, ga)
-                            if alpha < ALPHA_MIN:
+                            w, ti, iom = _unblend(T, p, ga)
+                            if w < 0.0:
                                 continue
-                            iom = 1.0 / (1.0 - alpha)
-                            ti = T[p] * iom
-                            w = alpha * ti
                             q = p * uC
                             g0 = gp[q]
                             g1 = gp[q + np.uint64(1)]
@@ -885,16 +898,7 @@ def raster_backward(pk, pf, pidx, pair_slot, tile_start, order, bg, width, heigh
                             gf1 += w * g1
                             gf2 += w * g2
                             gf3 += w * g3
-                            dlda = ti * fg - Rr[p] * iom
-                            Rr[p] += fg * w
-                            T[p] = ti
-                            if ga <= ALPHA_MAX:
-                                dx = mx - x
-                                dpow = ga * dlda
-                                s0 += dpow
-                                t1 = dpow * dx
-                                s1 += t1
-                                s2 += t1 * dx
+                            s0, s1, s2 = _unblend_grad(T, Rr, p, fg, w, ti, iom, ga, mx - x, s0, s1, s2)
                     else:
                         for x in range(sx0, sx1 + 1):
                             g = G
@@ -904,12 +908,9 @@ def raster_backward(pk, pf, pidx, pair_slot, tile_start, order, bg, width, heigh
                             if k >= lst[p]:
                                 continue
                             ga = o * g
-                            alpha = min(ALPHA_MAX, ga)
-                            if alpha < ALPHA_MIN:
+                            w, ti, iom = _unblend(T, p, ga)
+                            if w < 0.0:
                                 continue
-                            iom = 1.0 / (1.0 - alpha)
-                            ti = T[p] * iom
-                            w = alpha * ti
                             q = p * uC
                             g0 = gp[q]
                             g1 = gp[q + np.uint64(1)]
@@ -924,16 +925,7 @@ def raster_backward(pk, pf, pidx, pair_slot, tile_start, order, bg, width, heigh
                                 gv = gp[q + np.uint64(c)]
                                 fg += pf[j, c] * gv
                                 gf[c] += w * gv
-                            dlda = ti * fg - Rr[p] * iom
-                            Rr[p] += fg * w
-                            T[p] = ti
-                            if ga <= ALPHA_MAX:
-                                dx = mx - x
-                                dpow = ga * dlda
-                                s0 += dpow
-                                t1 = dpow * dx
-                                s1 += t1
-                                s2 += t1 * dx
+                            s0, s1, s2 = _unblend_grad(T, Rr, p, fg, w, ti, iom, ga, mx - x, s0, s1, s2)
                     s0t += s0
                     s1t += s1
                     s2t += s2
