@@ -516,8 +516,8 @@ class GGFConfig(_Section):
     plane_depth: bool = False
     """Surfels (AMR's children) render the depth where each pixel's ray meets their plane instead of their
     centre's depth (``ggfslam.render.plane_depth``), in training, evaluation and GCGR (no effect without ``amr``,
-    so ablations can keep it set). Better geometry for some colour and time, so off by default. Runs of 2026-12-04 (field on, off -> on): Replica office0 (its config)
-    depth L1 0.574 -> 0.533 cm (the field off: 0.574), median 0.28 -> 0.22 cm, PSNR 34.06 -> 33.74 dB, mapping
+    so ablations can keep it set). Better geometry for some colour and time, so off by default. Runs of
+    2026-12-04 (field on, off -> on): Replica office0 (its config) depth L1 0.574 -> 0.533 cm (the field off: 0.574), median 0.28 -> 0.22 cm, PSNR 34.06 -> 33.74 dB, mapping
     5.9 -> 5.1 steps/s; synthetic room (``bench_ggf.py synthetic:120``) mesh depth L1 2.00 -> 1.93 cm (off:
     2.12), sensor 3.44 -> 3.39 cm (off: 3.53), 21.60 -> 21.56 dB; fr3/cabinet depth L1 3.90 -> 3.80 cm,
     23.44 -> 23.53 dB, wall 318 -> 334 s; 7-Scenes kitchen (registered config) 2.36 -> 2.31 cm, 27.05 -> 27.09 dB,

@@ -32,12 +32,16 @@ def _render(means, quats, scales, opac, n, planar, backend="cpu"):
     return out, plane_depth(out.extras[..., :PLANE_CHANNELS], out.alpha, out.depth, INTR, MIN_ALPHA)
 
 
-def _ray_plane(n: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
-    """Depth [H, W] where each pixel's ray (z = 1) meets the plane through p with normal n."""
+def _rays() -> torch.Tensor:
+    """Every pixel's ray [H, W, 3] (z = 1), float64, written here independently of ``pixel_rays``."""
     v, u = np.mgrid[0:INTR.height, 0:INTR.width].astype(np.float64)
-    r = np.stack([(u - INTR.cx) / INTR.fx, (v - INTR.cy) / INTR.fy, np.ones_like(u)], -1)
-    nn, pp = n[0].double().numpy(), p[0].double().numpy()
-    return torch.from_numpy((nn @ pp) / (r @ nn))
+    return torch.from_numpy(np.stack([(u - INTR.cx) / INTR.fx, (v - INTR.cy) / INTR.fy, np.ones_like(u)], -1))
+
+
+def _ray_plane(n: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+    """Depth [H, W] where each pixel's ray meets the plane through p with normal n."""
+    nn, pp = n[0].double(), p[0].double()
+    return (nn @ pp) / (_rays() @ nn)
 
 
 def test_tilted_surfel_depth_is_where_the_ray_meets_its_plane():
@@ -102,10 +106,8 @@ def test_plane_depth_gradient_matches_finite_differences(backend):
             e = torch.zeros_like(means)
             e[0, k] = h
             num[k] = (loss(means + e) - loss(means - e)) / (2 * h)
-    v, u = np.mgrid[0:INTR.height, 0:INTR.width].astype(np.float64)
-    r = torch.from_numpy(np.stack([(u - INTR.cx) / INTR.fx, (v - INTR.cy) / INTR.fy, np.ones_like(u)], -1))
     nn = -n[0]  # the plane's normal as plane_channels orients it: away from the camera
-    closed = (w / (r @ nn)).sum() * nn
+    closed = (w / (_rays() @ nn)).sum() * nn
     tol = 1e-6 if backend == "reference" else 1e-2
     assert torch.allclose(m.grad[0], closed, rtol=tol, atol=tol * closed.abs().max())
     assert torch.allclose(num, closed, rtol=10 * tol, atol=10 * tol * closed.abs().max())
