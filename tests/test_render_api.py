@@ -132,6 +132,19 @@ def test_means2d_gradient_statistic():
     assert o2._means2d_probe is None and (o2.means2d_grad_norm() == 0).all()
 
 
+def test_a_second_backward_of_one_cpu_render_says_what_to_do():
+    sc = {k: v.requires_grad_(True) for k, v in _scene().items()}
+    out = rasterize(**sc, camera=CAM, T_cw=np.eye(4), backend="cpu")
+    loss = out.color.sum() + out.depth.sum()
+    g1, = torch.autograd.grad(loss, sc["means"], retain_graph=True)
+    assert torch.isfinite(g1).all() and g1.abs().sum() > 0
+    with pytest.raises(RuntimeError, match="backward ran twice on one render.*render again"):
+        loss.backward()
+    out = rasterize(**sc, camera=CAM, T_cw=np.eye(4), backend="cpu")  # a new render gives the same gradient
+    g2, = torch.autograd.grad(out.color.sum() + out.depth.sum(), sc["means"])
+    torch.testing.assert_close(g1, g2)
+
+
 def test_thread_count_does_not_change_results():
     sc = {k: v.requires_grad_(True) for k, v in _scene(200, seed=3).items()}
     res = []

@@ -147,6 +147,9 @@ class _RasterizeCPU(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_color, g_depth_raw, g_alpha, g_depth, g_extras):
+        if ctx.np is None:
+            raise RuntimeError("the CPU rasterizer's backward ran twice on one render: its pair buffers are freed after "
+                               "the first pass (retain_graph=True is not supported); render again for another gradient")
         means, quats, scales, R_cw, t_cw = ctx.saved_tensors
         (vis, tile_start, pidx, srec, sfeat, pair_start, pair_slot, bg, tfinal, last, work_bwd, K, Kp,
          depth_raw) = ctx.np
