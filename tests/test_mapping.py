@@ -54,6 +54,57 @@ def test_psnr_and_depth_improve_while_mapping(sequence):
     assert st["iterations"] == 120 and st["keyframes"] == 3 and st["gaussians"] > st["anchors"]
 
 
+def test_vignetting_is_learned_into_the_camera_not_the_map(sequence):
+    """Images darkened towards the corners by a known radial gain: the mapper learns that gain (shared by the
+    keyframes), so the renders that carry it fit the images better than a map without it, and the map's own
+    colours (renders without an exposure, the bake) stay the scene's."""
+    from ggfslam.render.plane_depth import pixel_rays
+
+    ds, gt = sequence, sequence.gt_poses
+    cam = ds.camera
+    rays = pixel_rays(scaled_intrinsics(cam, cam.width)).numpy()
+    r2 = rays[..., 0] ** 2 + rays[..., 1] ** 2  # [H, W]
+    true_gain = 1.0 - 0.6 * r2
+    results = {}
+    for on in (False, True):
+        poses = {}
+        m = _mapper(ds, poses, vignetting=on, lr_vignetting=0.02)  # fast enough for 120 steps
+        for kf, fi in enumerate((0, 12, 24)):
+            f = ds[fi]
+            poses[kf] = gt[fi]
+            m.add_keyframe(kf, fi, (f.rgb * true_gain[..., None]).astype(np.float32), f.depth)
+            m.train(40, focus=kf)
+        m.train(120)
+        scores = [psnr(m.render(gt[fi], exposure_kf=kf).color.numpy(), m.store.get(kf).rgb)
+                  for kf, fi in enumerate((0, 12, 24))]
+        results[on] = (float(np.mean(scores)), m)
+    (p_off, _), (p_on, m) = results[False], results[True]
+    assert p_on > p_off + 0.3, (p_off, p_on)
+    intr = m.intr
+    r2s = pixel_rays(intr).numpy()
+    r2s = r2s[..., 0] ** 2 + r2s[..., 1] ** 2
+    learned = m.vignetting_gain(intr).detach().numpy()
+    truth = 1.0 - 0.6 * r2s  # 0.66 in the corners
+    assert (np.abs(learned - truth) <= 0.25 * (1.0 - truth) + 0.01).all(), m.vignette  # darkening within 25%
+    # a render without an exposure is the map's own colour: brighter than the vignetted sensor image in the corners
+    raw = m.render(gt[0]).color.numpy()
+    vig = m.render(gt[0], exposure_kf=0).color.numpy()
+    corner = r2s > 0.8 * r2s.max()
+    assert raw[corner].mean() > vig[corner].mean() * 1.1
+    # the camera's gain survives a checkpoint; an old checkpoint without it loads with none
+    m2 = _mapper(ds, {k: gt[f] for k, f in enumerate((0, 12, 24))}, vignetting=True)
+    st = m.state()
+    m2.load_state(st)
+    torch.testing.assert_close(m2.vignette.detach(), m.vignette.detach())
+    del st["vignette"]
+    for i in st["opt"]["param_groups"][-1]["params"]:
+        st["opt"]["state"].pop(i, None)
+    st["opt"]["param_groups"] = st["opt"]["param_groups"][:-1]
+    m2.load_state(st)
+    assert float(m2.vignette.abs().sum()) == 0.0
+    m2.train(2)
+
+
 def _two_keyframes(ds) -> tuple[Mapper, dict]:
     """A mapper seeded (not trained) with frames 0 and 12 as keyframes 0 and 1 at their true poses."""
     gt = ds.gt_poses

@@ -79,8 +79,8 @@ def ply_fidelity(mapper, baked) -> dict:
     """How much of the map a standard viewer gets: PSNR against the keyframes' training images of the map's own
     render (each keyframe's exposure), of the baked Gaussians (``ExplicitGaussians``, e.g. gaussians.ply read
     back) at the same poses (``psnr_ply``: the file's one brightness, the keyframes' median exposure), and of
-    that render brought to each keyframe's exposure (``psnr_ply_exposed``: the file against the map under the
-    same camera model; with auto-exposure the two PLY figures differ)."""
+    that render brought to each keyframe's exposure and the camera's vignetting (``psnr_ply_exposed``: the file
+    against the map under the same camera model; with auto-exposure or vignetting the two PLY figures differ)."""
     rows = []
     poses = mapper.pose_source()
     for k in mapper.store.ids():
@@ -89,7 +89,7 @@ def ply_fidelity(mapper, baked) -> dict:
         item = mapper.store.get(k)
         own = mapper.render(poses[k], exposure_kf=k, planar=False).color.numpy()
         ply = baked.render(poses[k], mapper.intr, mapper.settings).color
-        exposed = mapper.reexpose(ply, k).clamp(0, 1).numpy()
+        exposed = mapper.reexpose(ply, k, mapper.intr).clamp(0, 1).numpy()
         rows.append((psnr(own, item.rgb), psnr(ply.clamp(0, 1).numpy(), item.rgb), psnr(exposed, item.rgb)))
     a = np.asarray(rows, np.float64).reshape(-1, 3)
     mean = a.mean(axis=0) if len(a) else np.full(3, np.nan)

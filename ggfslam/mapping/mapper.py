@@ -45,7 +45,7 @@ from ggfslam.mapping.keyframe_store import KeyframeStore, scaled_intrinsics
 from ggfslam.mapping.loss_kernels import normal_loss_from_depth
 from ggfslam.mapping.losses import depth_loss, photometric_loss
 from ggfslam.render.api import rasterize
-from ggfslam.render.plane_depth import PLANE_CHANNELS, plane_channels, plane_depth
+from ggfslam.render.plane_depth import PLANE_CHANNELS, pixel_rays, plane_channels, plane_depth
 from ggfslam.render.types import Intrinsics, RenderOutput, RenderSettings
 
 PoseSource = Callable[[], dict[int, np.ndarray]]  # keyframe id -> T_wc [4, 4]
@@ -90,6 +90,7 @@ class Mapper:
                                       cfg.density_min_visits, cfg.max_anchors)
         self.exposure = nn.Parameter(torch.zeros(0, 6))  # [E, 6]: log gain (3), offset (3) per keyframe
         self.exposure_row: dict[int, int] = {}
+        self.vignette = nn.Parameter(torch.zeros(2))  # [2] v1, v2 of the radial gain 1 + v1 r^2 + v2 r^4
         self.opt = self._make_optimizer()
         self.rng = np.random.default_rng(seed)
         self.anchor_poses: dict[int, np.ndarray] = {}  # pose of each keyframe when its anchors were placed
@@ -112,6 +113,7 @@ class Mapper:
             {"params": [m.base_color], "lr": c.lr_color, "name": "base_color"},
             {"params": list(m.decoder.parameters()), "lr": c.lr_mlp, "name": "mlp"},
             {"params": [self.exposure], "lr": c.lr_exposure if c.exposure else 0.0, "name": "exposure"},
+            {"params": [self.vignette], "lr": c.lr_vignetting if c.vignetting else 0.0, "name": "vignette"},
         ])
 
     # --- keyframes -----------------------------------------------------------------------------------
@@ -363,7 +365,7 @@ class Mapper:
             p2d = self._planar_channel(g) if sink is not None else None
             l_morph = self.ggf.morph(g) if self.ggf is not None and self.ggf_cfg.lambda_morph > 0 else torch.zeros(())
             out = self._rasterize(g, intr, T_wc, None if p2d is None else p2d.detach())
-            color = self._expose(out.color, kf_id)
+            color = self.sensor_image(out.color, intr, kf_id)
             gt_rgb = torch.from_numpy(np.ascontiguousarray(rgb))
             gt_depth = torch.from_numpy(np.ascontiguousarray(depth))
             l_photo = photometric_loss(color, gt_rgb, c.lambda_ssim)
@@ -418,6 +420,19 @@ class Mapper:
         out.extras = out.extras[..., PLANE_CHANNELS:] if p2d is not None else None
         return out
 
+    def vignetting_gain(self, intr: Intrinsics) -> torch.Tensor:
+        """The camera's learned vignetting gain [H, W] at intrinsics intr (1 at the optical axis)."""
+        rays = pixel_rays(intr)  # [H, W, 3]
+        r2 = rays[..., 0] ** 2 + rays[..., 1] ** 2
+        return 1.0 + self.vignette[0] * r2 + self.vignette[1] * r2 * r2
+
+    def sensor_image(self, color: torch.Tensor, intr: Intrinsics, kf_id: int) -> torch.Tensor:
+        """A render [H, W, 3] at intrinsics intr as the camera records it: vignetted, then keyframe ``kf_id``'s
+        exposure (``REFERENCE_EXPOSURE``: the keyframes' typical one)."""
+        if self.cfg.vignetting:
+            color = color * self.vignetting_gain(intr)[..., None]
+        return self._expose(color, kf_id)
+
     def _expose(self, color: torch.Tensor, kf_id: int | None) -> torch.Tensor:
         """Apply a keyframe's affine brightness (or with ``REFERENCE_EXPOSURE`` the keyframes' typical one) to
         a rendered image [H, W, 3] or colours [N, 3]."""
@@ -441,7 +456,9 @@ class Mapper:
             g, _ = self._decode_view(T_wc, intr, without_kf)
             p2d = self._planar_channel(g) if planar else None
             out = self._rasterize(g, intr, T_wc, p2d)
-            out.color = self._expose(out.color, exposure_kf).clamp(0, 1)
+            if exposure_kf is not None:
+                out.color = self.sensor_image(out.color, intr, exposure_kf)
+            out.color = out.color.clamp(0, 1)
             return out
 
     @torch.no_grad()
@@ -505,13 +522,19 @@ class Mapper:
         valid = (views >= 0)[inv]  # [G, V]
         return fit_sh1(torch.stack(cols, 1), torch.stack(dirs, 1), valid)
 
-    def reexpose(self, color: torch.Tensor, kf_id: int) -> torch.Tensor:
-        """Colours [..., 3] under the reference exposure (a baked file's) brought to keyframe ``kf_id``'s exposure."""
+    @torch.no_grad()
+    def reexpose(self, color: torch.Tensor, kf_id: int, intr: Intrinsics | None = None) -> torch.Tensor:
+        """Colours [..., 3] under the reference exposure (a baked file's) brought to keyframe ``kf_id``'s exposure;
+        for an image [H, W, 3] rendered at ``intr`` also the camera's vignetting (``sensor_image``)."""
         e_ref = self.reference_exposure()
+        if e_ref is not None:
+            color = (color - e_ref[3:]) * torch.exp(-e_ref[:3])  # the scene's colours
+        if intr is not None and self.cfg.vignetting:
+            color = color * self.vignetting_gain(intr)[..., None]
         if e_ref is None or kf_id not in self.exposure_row:
-            return color
+            return color if e_ref is None else color * torch.exp(e_ref[:3]) + e_ref[3:]
         e = self.exposure.detach()[self.exposure_row[kf_id]]
-        return (color - e_ref[3:]) * torch.exp(e[:3] - e_ref[:3]) + e[3:]
+        return color * torch.exp(e[:3]) + e[3:]
 
     def reference_exposure(self) -> torch.Tensor | None:
         """The keyframes' median exposure [6] (log gain, offset): the brightness of views that have no keyframe
@@ -567,6 +590,7 @@ class Mapper:
         with self.lock:
             return {"map_extra": self.map.extra_state(), "map": self.map.state_dict(),
                     "exposure": self.exposure.detach().clone(), "exposure_row": dict(self.exposure_row),
+                    "vignette": self.vignette.detach().clone(),
                     "opt": self.opt.state_dict(), "density": vars(self.density.stats).copy(),
                     "anchor_poses": {k: v.copy() for k, v in self.anchor_poses.items()},
                     "poses": {k: v.copy() for k, v in self._poses.items()},
@@ -586,8 +610,13 @@ class Mapper:
             self.map.gen.set_state(st["generator"])
             self.exposure = nn.Parameter(st["exposure"].clone())
             self.exposure_row = dict(st["exposure_row"])
+            self.vignette = nn.Parameter(st["vignette"].clone() if "vignette" in st else torch.zeros(2))
             self.opt = self._make_optimizer()
-            self.opt.load_state_dict(st["opt"])
+            opt_state = st["opt"]
+            if "vignette" not in st:  # checkpoints from before the vignetting: its Adam state starts fresh
+                opt_state = {"state": opt_state["state"],
+                             "param_groups": opt_state["param_groups"] + self.opt.state_dict()["param_groups"][-1:]}
+            self.opt.load_state_dict(opt_state)
             self.density = DensityControl(self.map, self.cfg.grow_grad_threshold, self.cfg.prune_min_opacity,
                                           self.cfg.density_min_visits, self.cfg.max_anchors)
             self.density.stats = DensityStats(**st["density"])
