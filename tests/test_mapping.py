@@ -85,7 +85,9 @@ def test_vignetting_is_learned_into_the_camera_not_the_map(sequence):
     r2s = r2s[..., 0] ** 2 + r2s[..., 1] ** 2
     learned = m.vignetting_gain(intr).detach().numpy()
     truth = 1.0 - 0.6 * r2s  # 0.66 in the corners
-    assert (np.abs(learned - truth) <= 0.25 * (1.0 - truth) + 0.01).all(), m.vignette  # darkening within 25%
+    # within 0.08 everywhere of a darkening that reaches 0.34 (the map's colours and the keyframes' exposures can
+    # take a little of it: the split between r^2 and r^4 differs run to run, the gain itself little)
+    assert np.abs(learned - truth).max() < 0.08, m.vignette
     # a render without an exposure is the map's own colour: brighter than the vignetted sensor image in the corners
     raw = m.render(gt[0]).color.numpy()
     vig = m.render(gt[0], exposure_kf=0).color.numpy()
