@@ -103,8 +103,7 @@ def test_vignetting_is_learned_into_the_camera_not_the_map(sequence):
         st["opt"]["state"].pop(i, None)
     st["opt"]["param_groups"] = st["opt"]["param_groups"][:-1]
     m2.load_state(st)
-    assert float(m2.vignette.abs().sum()) == 0.0
-    m2.train(2)
+    assert float(m2.vignette.detach().abs().sum()) == 0.0
 
 
 def _two_keyframes(ds) -> tuple[Mapper, dict]:
