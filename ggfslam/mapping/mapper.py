@@ -527,14 +527,9 @@ class Mapper:
         """Colours [..., 3] under the reference exposure (a baked file's) brought to keyframe ``kf_id``'s exposure;
         for an image [H, W, 3] rendered at ``intr`` also the camera's vignetting (``sensor_image``)."""
         e_ref = self.reference_exposure()
-        if e_ref is not None:
-            color = (color - e_ref[3:]) * torch.exp(-e_ref[:3])  # the scene's colours
-        if intr is not None and self.cfg.vignetting:
-            color = color * self.vignetting_gain(intr)[..., None]
-        if e_ref is None or kf_id not in self.exposure_row:
-            return color if e_ref is None else color * torch.exp(e_ref[:3]) + e_ref[3:]
-        e = self.exposure.detach()[self.exposure_row[kf_id]]
-        return color * torch.exp(e[:3]) + e[3:]
+        scene = color if e_ref is None else (color - e_ref[3:]) * torch.exp(-e_ref[:3])  # the reference undone
+        kf = kf_id if kf_id in self.exposure_row else REFERENCE_EXPOSURE
+        return self._expose(scene, kf) if intr is None else self.sensor_image(scene, intr, kf)
 
     def reference_exposure(self) -> torch.Tensor | None:
         """The keyframes' median exposure [6] (log gain, offset): the brightness of views that have no keyframe
