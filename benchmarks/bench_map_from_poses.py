@@ -84,6 +84,7 @@ def map_from_poses(run_dir: str, source: str, overrides: list[str]) -> dict:
             mapper.train(mapper.keyframe_budget(k), focus=k)
         mapper.sync_poses()
         mapper.train(cfg.mapping.final_iterations)
+        mapper.refit_exposures()
         train_s = time.perf_counter() - t0
         every = rendering_metrics(cfg, mapper, ds, frames, poses[frames])
         cfg.mapping.eval_stride = 1  # every keyframe
@@ -115,6 +116,7 @@ def step_budget(run_dir: str, source: str, overrides: list[str], subset: int, st
         t0 = time.perf_counter()
         for n in sorted(steps):
             mapper.train(n - mapper.iteration)
+            mapper.refit_exposures()
             r = rendering_metrics(cfg, mapper, ds, np.array(sel), poses[sel])
             rows.append({"steps": n, "steps_per_keyframe": n / subset, "seconds": time.perf_counter() - t0,
                          **{k: r[k] for k in ("psnr", "ssim", "depth_l1_cm", "width", "height")}})

@@ -508,6 +508,7 @@ def _finish_sequence(config: Config, st: _RunState, stop: _StopRequests) -> None
                 stop.refining = False
             if stop.halted:
                 raise KeyboardInterrupt(f"{stop.halted} during the final refinement")
+            st.mapper.refit_exposures()  # each keyframe's last fit is as old as its last step
     st.wall += time.perf_counter() - t0
 
 

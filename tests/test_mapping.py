@@ -106,6 +106,47 @@ def test_vignetting_is_learned_into_the_camera_not_the_map(sequence):
     assert float(m2.vignette.detach().abs().sum()) == 0.0
 
 
+def test_a_keyframes_exposure_is_solved_not_learned(sequence):
+    """A keyframe recorded darker and with an offset (0.7 x + 0.08): its solved exposure takes that change
+    relative to the first keyframe's (the identity, which fixes the map's colours), and fits its image better than
+    Adam's few small steps; the fit itself is the least-squares affine map from the vignetted render to the image,
+    exactly."""
+    ds, gt = sequence, sequence.gt_poses
+    a_true, b_true = 0.7, 0.08
+    results = {}
+    for solved in (True, False):
+        poses = {}
+        m = _mapper(ds, poses, exposure_closed_form=solved)
+        for kf, fi in enumerate((0, 12)):
+            f = ds[fi]
+            poses[kf] = gt[fi]
+            rgb = f.rgb if kf == 0 else np.clip(a_true * f.rgb + b_true, 0, 1).astype(np.float32)
+            m.add_keyframe(kf, fi, rgb, f.depth)
+            m.train(40, focus=kf)
+        m.train(40)
+        if solved:
+            assert m.refit_exposures() == 1  # the first keyframe's exposure stays the identity
+            assert float(m.exposure.detach()[m.exposure_row[0]].abs().max()) == 0.0
+        results[solved] = (psnr(m.render(gt[12], exposure_kf=1).color.numpy(), m.store.get(1).rgb), m)
+    (p_solved, m), (p_adam, _) = results[True], results[False]
+    assert p_solved > p_adam + 0.5, (p_solved, p_adam)
+    e = m.exposure.detach()
+    gain0, gain1 = e[m.exposure_row[0], :3].exp(), e[m.exposure_row[1], :3].exp()
+    off0, off1 = e[m.exposure_row[0], 3:], e[m.exposure_row[1], 3:]
+    np.testing.assert_allclose((gain1 / gain0).numpy(), a_true, atol=0.05)
+    np.testing.assert_allclose((off1 - a_true * off0).numpy(), b_true, atol=0.03)
+    # exact on an image made from the render itself with the camera's vignetting and a known affine map
+    with torch.no_grad():
+        m.vignette.copy_(torch.tensor([-0.3, 0.1]))
+        out = m.render(gt[12])
+        x = out.color * m.vignetting_gain(m.intr)[..., None]
+    a, b = torch.tensor([0.8, 1.1, 0.9]), torch.tensor([0.05, -0.02, 0.0])
+    assert m._fit_exposure(1, out.color, out.alpha, m.intr, (x * a + b).numpy())
+    torch.testing.assert_close(m.exposure.detach()[m.exposure_row[1]], torch.cat([a.log(), b]), atol=1e-4, rtol=0)
+    assert not m._fit_exposure(1, out.color, torch.zeros_like(out.alpha), m.intr, (x * a + b).numpy())
+    assert not m._fit_exposure(0, out.color, out.alpha, m.intr, (x * a + b).numpy())
+
+
 def _two_keyframes(ds) -> tuple[Mapper, dict]:
     """A mapper seeded (not trained) with frames 0 and 12 as keyframes 0 and 1 at their true poses."""
     gt = ds.gt_poses

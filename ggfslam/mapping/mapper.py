@@ -112,7 +112,8 @@ class Mapper:
             {"params": [m.offsets], "lr": c.lr_offsets, "name": "offsets"},
             {"params": [m.base_color], "lr": c.lr_color, "name": "base_color"},
             {"params": list(m.decoder.parameters()), "lr": c.lr_mlp, "name": "mlp"},
-            {"params": [self.exposure], "lr": c.lr_exposure if c.exposure else 0.0, "name": "exposure"},
+            {"params": [self.exposure], "lr": c.lr_exposure if c.exposure and not c.exposure_closed_form else 0.0,
+             "name": "exposure"},
             {"params": [self.vignette], "lr": c.lr_vignetting if c.vignetting else 0.0, "name": "vignette"},
         ])
 
@@ -365,6 +366,8 @@ class Mapper:
             p2d = self._planar_channel(g) if sink is not None else None
             l_morph = self.ggf.morph(g) if self.ggf is not None and self.ggf_cfg.lambda_morph > 0 else torch.zeros(())
             out = self._rasterize(g, intr, T_wc, None if p2d is None else p2d.detach())
+            if c.exposure_closed_form:
+                self._fit_exposure(kf_id, out.color.detach(), out.alpha.detach(), intr, rgb)
             color = self.sensor_image(out.color, intr, kf_id)
             gt_rgb = torch.from_numpy(np.ascontiguousarray(rgb))
             gt_depth = torch.from_numpy(np.ascontiguousarray(depth))
@@ -444,6 +447,51 @@ class Mapper:
             e = self.exposure[self.exposure_row[kf_id]]
         return color if e is None else color * torch.exp(e[:3]) + e[3:]
 
+    @torch.no_grad()
+    def _fit_exposure(self, kf_id: int, color: torch.Tensor, alpha: torch.Tensor, intr: Intrinsics, rgb: np.ndarray,
+                      min_alpha: float = 0.5) -> bool:
+        """Set keyframe ``kf_id``'s exposure to the per-channel least-squares affine map from a render (colour
+        [H, W, 3] and alpha [H, W] at intrinsics intr) with the camera's vignetting to its image rgb [H, W, 3], over
+        the pixels the map covers (alpha > min_alpha). False (nothing changed) where too few pixels are covered, and
+        for the first keyframe: were every exposure fitted, the map's colours could drift by any affine map that all
+        exposures undo (a synthetic test drifted to gains 0.8 and offsets -0.2 and biased the vignetting)."""
+        if not self.cfg.exposure or self.exposure_row.get(kf_id, 0) == 0:
+            return False  # the first keyframe's stays the identity: it fixes the colours the map holds
+        w = (alpha > min_alpha).float()[..., None]  # [H, W, 1]
+        n = float(w.sum())
+        if n < 100:
+            return False
+        x = color * self.vignetting_gain(intr)[..., None] if self.cfg.vignetting else color  # [H, W, 3]
+        y = torch.from_numpy(np.ascontiguousarray(rgb))  # [H, W, 3]
+        wx = w * x
+        xm, ym = wx.sum((0, 1)).double() / n, (w * y).sum((0, 1)).double() / n  # [3]
+        cov = (wx * y).sum((0, 1)).double() / n - xm * ym
+        var = (wx * x).sum((0, 1)).double() / n - xm * xm
+        gain = (cov / var.clamp_min(1e-9)).clamp(0.25, 4.0)  # a flat or dark render cannot set a gain
+        self.exposure[self.exposure_row[kf_id]] = torch.cat([gain.log(), ym - gain * xm]).float()
+        return True
+
+    @torch.no_grad()
+    def refit_exposures(self) -> int:
+        """``_fit_exposure`` for every keyframe from a fresh render of the map at the training size (the end of a
+        run: each keyframe's last fit is as old as its last step; with ``exposure_closed_form``); returns the number
+        refitted."""
+        if not (self.cfg.exposure and self.cfg.exposure_closed_form):
+            return 0
+        n = 0
+        with self.lock:
+            intr = self.store.level_intrinsics(0)
+            for kf in sorted(self.exposure_row):
+                T_wc = self._poses.get(kf, self.anchor_poses.get(kf))
+                if T_wc is None or kf not in self.store.ids():
+                    continue
+                g, _ = self._decode_view(T_wc, intr)
+                if len(g) == 0:
+                    continue
+                out = self._rasterize(g, intr, T_wc, None)
+                n += self._fit_exposure(kf, out.color, out.alpha, intr, self.store.get(kf, 0).rgb)
+        return n
+
     # --- rendering -----------------------------------------------------------------------------------
     @torch.no_grad()
     def render(self, T_wc: np.ndarray, intr: Intrinsics | None = None, exposure_kf: int | None = None,
@@ -467,7 +515,7 @@ class Mapper:
         (gaussians/bake.py): exactly the decoded children with their SH colours (``colors`` the DC part,
         ``sh_rest`` [G, B, 3] the rest), or for a view-dependent (Scaffold-GS) decoder each anchor decoded from the
         nearest keyframe that saw it, colours fitted as degree-1 SH over up to four observing keyframes. Colours
-        carry the keyframes' median exposure."""
+        carry the reference exposure (``reference_exposure``)."""
         with self.lock:
             kf_ids = sorted(self.anchor_poses)
             if not kf_ids or self.map.n_anchors == 0:
@@ -532,10 +580,12 @@ class Mapper:
         return self._expose(scene, kf) if intr is None else self.sensor_image(scene, intr, kf)
 
     def reference_exposure(self) -> torch.Tensor | None:
-        """The keyframes' median exposure [6] (log gain, offset): the brightness of views that have no keyframe
-        of their own (baked Gaussians, renders along new paths); None without exposure."""
-        if not self.cfg.exposure or len(self.exposure_row) == 0:
-            return None
+        """The brightness of views that have no keyframe of their own (baked Gaussians, renders along new paths):
+        with learned exposures their median [6] (log gain, offset; they drift together); None without exposure or
+        with solved ones (relative to the first keyframe's identity: the map's colours are that keyframe's, and an
+        offset baked into Gaussians would be scaled by each pixel's alpha)."""
+        if not self.cfg.exposure or self.cfg.exposure_closed_form or len(self.exposure_row) == 0:
+            return None  # solved exposures are relative to the first keyframe's, whose colours the map holds
         return self.exposure.detach().median(dim=0).values
 
     @torch.no_grad()
@@ -608,9 +658,9 @@ class Mapper:
             self.vignette = nn.Parameter(st["vignette"].clone() if "vignette" in st else torch.zeros(2))
             self.opt = self._make_optimizer()
             opt_state = st["opt"]
-            if "vignette" not in st:  # checkpoints from before the vignetting: its Adam state starts fresh
-                opt_state = {"state": opt_state["state"],
-                             "param_groups": opt_state["param_groups"] + self.opt.state_dict()["param_groups"][-1:]}
+            groups = self.opt.state_dict()["param_groups"]
+            if len(opt_state["param_groups"]) == len(groups) - 1:  # from before the vignetting: fresh Adam state
+                opt_state = {"state": opt_state["state"], "param_groups": opt_state["param_groups"] + groups[-1:]}
             self.opt.load_state_dict(opt_state)
             self.density = DensityControl(self.map, self.cfg.grow_grad_threshold, self.cfg.prune_min_opacity,
                                           self.cfg.density_min_visits, self.cfg.max_anchors)
