@@ -398,7 +398,7 @@ class MappingConfig(_Section):
     and the run ends with one such fit per keyframe from the final map. The first keyframe's exposure stays the
     identity (it fixes the map's colours, which gaussians.ply then holds as that keyframe saw them). Adam (``lr_exposure``) moves an exposure
     only on its own keyframe's steps, ~lr each: too slow to converge, and faster rates destabilise the map
-    (fr3/cabinet: 23.97 dB with Adam at 0.002, 21.77 at 0.01, 24.69 solved; see README)."""
+    (fr3/cabinet: 23.97 dB with Adam at 0.002, 21.77 at 0.01, 24.36 solved; see README)."""
     lr_features: float = 0.0075
     """Adam step of anchor features."""
     lr_offsets: float = 0.01
