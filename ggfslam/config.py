@@ -396,9 +396,9 @@ class MappingConfig(_Section):
     """Solve each keyframe's exposure instead of learning it: every step first sets its keyframe's exposure to the
     per-channel least-squares affine map from the (vignetted) render to the image over the pixels the map covers,
     and the run ends with one such fit per keyframe from the final map. The first keyframe's exposure stays the
-    identity (it fixes the map's colours, which gaussians.ply then holds as that keyframe saw them). Adam (``lr_exposure``) moves an exposure
-    only on its own keyframe's steps, ~lr each: too slow to converge, and faster rates destabilise the map
-    (fr3/cabinet: 23.97 dB with Adam at 0.002, 21.77 at 0.01, 24.36 solved; see README)."""
+    identity (it fixes the map's colours, which gaussians.ply then holds as that keyframe saw them). Adam
+    (``lr_exposure``) moves an exposure only on its own keyframe's steps, ~lr each: too slow to converge, and
+    faster rates destabilise the map (fr3/cabinet: 23.97 dB with Adam at 0.002, 21.77 at 0.01, 24.36 solved)."""
     lr_features: float = 0.0075
     """Adam step of anchor features."""
     lr_offsets: float = 0.01
