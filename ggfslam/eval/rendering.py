@@ -78,7 +78,7 @@ def render_metrics(mapper, dataset, poses: np.ndarray, indices: np.ndarray, intr
 def ply_fidelity(mapper, baked) -> dict:
     """How much of the map a standard viewer gets: PSNR against the keyframes' training images of the map's own
     render (each keyframe's exposure), of the baked Gaussians (``ExplicitGaussians``, e.g. gaussians.ply read
-    back) at the same poses (``psnr_ply``: the file's one brightness, the keyframes' median exposure), and of
+    back) at the same poses (``psnr_ply``: the file's one brightness, the mapper's ``reference_exposure``), and of
     that render brought to each keyframe's exposure and the camera's vignetting (``psnr_ply_exposed``: the file
     against the map under the same camera model; with auto-exposure or vignetting the two PLY figures differ)."""
     rows = []

@@ -366,9 +366,10 @@ class Mapper:
             p2d = self._planar_channel(g) if sink is not None else None
             l_morph = self.ggf.morph(g) if self.ggf is not None and self.ggf_cfg.lambda_morph > 0 else torch.zeros(())
             out = self._rasterize(g, intr, T_wc, None if p2d is None else p2d.detach())
+            vignetted = self._vignetted(out.color, intr)  # [H, W, 3]
             if c.exposure_closed_form:
-                self._fit_exposure(kf_id, out.color.detach(), out.alpha.detach(), intr, rgb)
-            color = self.sensor_image(out.color, intr, kf_id)
+                self._fit_exposure(kf_id, vignetted.detach(), out.alpha.detach(), rgb)
+            color = self._expose(vignetted, kf_id)
             gt_rgb = torch.from_numpy(np.ascontiguousarray(rgb))
             gt_depth = torch.from_numpy(np.ascontiguousarray(depth))
             l_photo = photometric_loss(color, gt_rgb, c.lambda_ssim)
@@ -431,14 +432,16 @@ class Mapper:
 
     def sensor_image(self, color: torch.Tensor, intr: Intrinsics, kf_id: int) -> torch.Tensor:
         """A render [H, W, 3] at intrinsics intr as the camera records it: vignetted, then keyframe ``kf_id``'s
-        exposure (``REFERENCE_EXPOSURE``: the keyframes' typical one)."""
-        if self.cfg.vignetting:
-            color = color * self.vignetting_gain(intr)[..., None]
-        return self._expose(color, kf_id)
+        exposure (``REFERENCE_EXPOSURE``: the reference one, ``reference_exposure``)."""
+        return self._expose(self._vignetted(color, intr), kf_id)
+
+    def _vignetted(self, color: torch.Tensor, intr: Intrinsics) -> torch.Tensor:
+        """A render [H, W, 3] at intrinsics intr with the camera's vignetting (unchanged without ``vignetting``)."""
+        return color * self.vignetting_gain(intr)[..., None] if self.cfg.vignetting else color
 
     def _expose(self, color: torch.Tensor, kf_id: int | None) -> torch.Tensor:
-        """Apply a keyframe's affine brightness (or with ``REFERENCE_EXPOSURE`` the keyframes' typical one) to
-        a rendered image [H, W, 3] or colours [N, 3]."""
+        """Apply a keyframe's affine brightness (or with ``REFERENCE_EXPOSURE`` the reference one) to a rendered
+        image [H, W, 3] or colours [N, 3]."""
         if kf_id == REFERENCE_EXPOSURE:
             e = self.reference_exposure()
         elif kf_id is None or kf_id not in self.exposure_row or not self.cfg.exposure:
@@ -448,11 +451,11 @@ class Mapper:
         return color if e is None else color * torch.exp(e[:3]) + e[3:]
 
     @torch.no_grad()
-    def _fit_exposure(self, kf_id: int, color: torch.Tensor, alpha: torch.Tensor, intr: Intrinsics, rgb: np.ndarray,
+    def _fit_exposure(self, kf_id: int, vignetted: torch.Tensor, alpha: torch.Tensor, rgb: np.ndarray,
                       min_alpha: float = 0.5) -> bool:
-        """Set keyframe ``kf_id``'s exposure to the per-channel least-squares affine map from a render (colour
-        [H, W, 3] and alpha [H, W] at intrinsics intr) with the camera's vignetting to its image rgb [H, W, 3], over
-        the pixels the map covers (alpha > min_alpha). False (nothing changed) where too few pixels are covered, and
+        """Set keyframe ``kf_id``'s exposure to the per-channel least-squares affine map from a render with the
+        camera's vignetting (``_vignetted``, [H, W, 3]; its alpha [H, W]) to its image rgb [H, W, 3], over the
+        pixels the map covers (alpha > min_alpha). False (nothing changed) where too few pixels are covered, and
         for the first keyframe: were every exposure fitted, the map's colours could drift by any affine map that all
         exposures undo (a synthetic test drifted to gains 0.8 and offsets -0.2 and biased the vignetting)."""
         if not self.cfg.exposure or self.exposure_row.get(kf_id, 0) == 0:
@@ -461,7 +464,7 @@ class Mapper:
         n = float(w.sum())
         if n < 100:
             return False
-        x = color * self.vignetting_gain(intr)[..., None] if self.cfg.vignetting else color  # [H, W, 3]
+        x = vignetted
         y = torch.from_numpy(np.ascontiguousarray(rgb))  # [H, W, 3]
         wx = w * x
         xm, ym = wx.sum((0, 1)).double() / n, (w * y).sum((0, 1)).double() / n  # [3]
@@ -481,15 +484,16 @@ class Mapper:
         n = 0
         with self.lock:
             intr = self.store.level_intrinsics(0)
+            stored = set(self.store.ids())
             for kf in sorted(self.exposure_row):
                 T_wc = self._poses.get(kf, self.anchor_poses.get(kf))
-                if T_wc is None or kf not in self.store.ids():
+                if T_wc is None or kf not in stored:
                     continue
                 g, _ = self._decode_view(T_wc, intr)
                 if len(g) == 0:
                     continue
                 out = self._rasterize(g, intr, T_wc, None)
-                n += self._fit_exposure(kf, out.color, out.alpha, intr, self.store.get(kf, 0).rgb)
+                n += self._fit_exposure(kf, self._vignetted(out.color, intr), out.alpha, self.store.get(kf, 0).rgb)
         return n
 
     # --- rendering -----------------------------------------------------------------------------------
