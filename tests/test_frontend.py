@@ -149,6 +149,23 @@ def test_tracking_synthetic_sequence_under_1cm(noise):
     assert tracker.backend.stats.ba_runs >= 1 and len(tracker.map.keyframes) >= 2
 
 
+def test_a_keyframes_frame_is_reported_at_the_keyframes_optimized_pose():
+    """Bundle adjustment moves a keyframe as soon as it is inserted; the trajectory reports that keyframe's frame at
+    the keyframe's final optimized pose (keyframes.txt), not at the pose tracking gave it before."""
+    seq = SyntheticSequence(n_frames=40, width=320, height=240, trajectory="orbit", seed=3, depth_noise=True)
+    tracker, results = _track(list(seq), seq.camera)
+    stamps, poses, _ = tracker.trajectory()
+    kf_stamps, kf_poses = tracker.keyframe_trajectory()
+    assert len(kf_stamps) >= 3
+    row = {float(t): i for i, t in enumerate(stamps)}
+    moved = 0.0
+    for t, T in zip(kf_stamps, kf_poses):
+        i = row[float(t)]
+        np.testing.assert_allclose(poses[i], T, atol=1e-12)
+        moved = max(moved, np.linalg.norm(results[i].T_wc[:3, 3] - T[:3, 3]))
+    assert moved > 1e-4  # bundle adjustment did move keyframes away from their tracked poses
+
+
 def test_blank_frames_are_lost_then_relocalized():
     seq = SyntheticSequence(n_frames=50, width=320, height=240, trajectory="orbit", seed=4)
     frames = list(seq)

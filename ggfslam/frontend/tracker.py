@@ -53,6 +53,9 @@ class OrbTracker:
         self.records: list[FrameRecord] = []
         self.velocity: np.ndarray | None = None  # inv(T_wc_prev) @ T_wc_last
         self.last_T: np.ndarray | None = None
+        # a new keyframe's pose relative to itself as tracked, before bundle adjustment moved it (its record holds
+        # the identity): the next frame's motion model starts from the tracked pose
+        self.tracked_rel: tuple[int, np.ndarray] | None = None
         self.last_features: Features | None = None
         self.last_lm: np.ndarray | None = None  # [N] landmark per keypoint of the last frame (-1 none)
         self.ref_kf: int = -1
@@ -272,7 +275,9 @@ class OrbTracker:
         if self.cfg.keyframe_sharpness_ratio > 0:
             self.recent_sharpness = [*self.recent_sharpness, sharpness(frame.rgb)][-2 * self.cfg.keyframe_max_frames:]
         # bundle adjustment or a loop closure may have moved the reference keyframe since the last frame
-        self.last_T = self.map.keyframes[self.records[-1].ref_kf].T_wc @ self.records[-1].T_ref_cur
+        ref, rel = getattr(self, "tracked_rel", None) or (self.records[-1].ref_kf, self.records[-1].T_ref_cur)
+        self.tracked_rel = None
+        self.last_T = self.map.keyframes[ref].T_wc @ rel
         res = None
         dense_T, res = None, None
         empty = np.zeros(0, np.int64)
@@ -328,8 +333,14 @@ class OrbTracker:
             lm_per_kp = kf.landmark_ids.copy()
             kf_id = kf.id
         self.last_T, self.last_features, self.last_lm, self.last_frame = T, F, lm_per_kp, frame
+        # a keyframe's frame is the keyframe: its final pose is the optimized one, including what bundle adjustment
+        # has already changed at insertion (a record relative to that pose would undo it)
         T_ref = self.map.keyframes[self.ref_kf].T_wc
-        self.records.append(FrameRecord(frame.index, frame.timestamp, self.ref_kf, invert(T_ref) @ T, state))
+        T_ref_cur = invert(T_ref) @ T
+        if is_kf:
+            self.tracked_rel = (self.ref_kf, T_ref_cur)
+            T_ref_cur = np.eye(4)
+        self.records.append(FrameRecord(frame.index, frame.timestamp, self.ref_kf, T_ref_cur, state))
         return TrackResult(T.copy(), True, len(lm) / max(len(F), 1), state, is_kf, len(lm), kf_id)
 
     def _initialize(self, frame: Frame, F: Features) -> TrackResult:
