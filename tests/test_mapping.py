@@ -139,13 +139,13 @@ def test_a_keyframes_exposure_is_solved_not_learned(sequence):
     with torch.no_grad():
         m.vignette.copy_(torch.tensor([-0.3, 0.1]))
         out = m.render(gt[12])
-        x = out.color * m.vignetting_gain(m.intr)[..., None]
+        vignetted = m._vignetted(out.color, m.intr)  # what the training step hands the fit
     a, b = torch.tensor([0.8, 1.1, 0.9]), torch.tensor([0.05, -0.02, 0.0])
-    vignetted = m._vignetted(out.color, m.intr)  # what the training step hands the fit
-    assert m._fit_exposure(1, vignetted, out.alpha, (x * a + b).numpy())
+    image = (vignetted * a + b).numpy()
+    assert m._fit_exposure(1, vignetted, out.alpha, image)
     torch.testing.assert_close(m.exposure.detach()[m.exposure_row[1]], torch.cat([a.log(), b]), atol=1e-4, rtol=0)
-    assert not m._fit_exposure(1, vignetted, torch.zeros_like(out.alpha), (x * a + b).numpy())
-    assert not m._fit_exposure(0, vignetted, out.alpha, (x * a + b).numpy())
+    assert not m._fit_exposure(1, vignetted, torch.zeros_like(out.alpha), image)
+    assert not m._fit_exposure(0, vignetted, out.alpha, image)
 
 
 def _two_keyframes(ds) -> tuple[Mapper, dict]:

@@ -144,7 +144,7 @@ class Mapper:
                 new = np.arange(first_new, self.map.n_anchors)
                 for k in sorted(self.anchor_poses)[-self.cfg.window:] if added else []:
                     prev = self.store.get(k, self.geo_level)
-                    self._observe(prev.rgb, prev.depth, self._poses.get(k, self.anchor_poses[k]), new)
+                    self._observe(prev.rgb, prev.depth, self._pose(k), new)
             self.anchor_poses[kf_id] = T_wc.copy()
             if kf_id not in self.exposure_row:
                 self._add_exposure(kf_id)
@@ -214,6 +214,11 @@ class Mapper:
         self.exposure_row[kf_id] = len(self.exposure_row)
 
     # --- pose corrections ----------------------------------------------------------------------------
+    def _pose(self, kf_id: int) -> np.ndarray | None:
+        """Keyframe ``kf_id``'s camera-to-world pose [4, 4]: the backend's last, else the one its anchors were seeded
+        at; None for a keyframe the mapper has not seen."""
+        return self._poses.get(kf_id, self.anchor_poses.get(kf_id))
+
     def sync_poses(self, poses: dict[int, np.ndarray] | None = None) -> int:
         """Move the anchors of keyframes the backend moved, then keep one anchor per voxel where moved anchors
         landed on others (``DensityControl.merge_collisions``); returns how many keyframes moved."""
@@ -270,9 +275,9 @@ class Mapper:
 
     def _covisible(self, kf_id: int, n: int) -> list[int]:
         """Up to n other keyframes whose anchors are most numerous in ``kf_id``'s view (most first)."""
-        if n <= 0 or kf_id not in self._poses and kf_id not in self.anchor_poses:
+        T = self._pose(kf_id)
+        if n <= 0 or T is None:
             return []
-        T = self._poses.get(kf_id, self.anchor_poses.get(kf_id))
         mask = self.map.visible_anchors(invert(T), self.intr, self.settings.near_plane, reach=self._reach())
         src = self.map.source_kf[mask]
         src = src[(src >= 0) & (src != kf_id)]
@@ -486,7 +491,7 @@ class Mapper:
             intr = self.store.level_intrinsics(0)
             stored = set(self.store.ids())
             for kf in sorted(self.exposure_row):
-                T_wc = self._poses.get(kf, self.anchor_poses.get(kf))
+                T_wc = self._pose(kf)
                 if T_wc is None or kf not in stored:
                     continue
                 g, _ = self._decode_view(T_wc, intr)
@@ -524,7 +529,7 @@ class Mapper:
             kf_ids = sorted(self.anchor_poses)
             if not kf_ids or self.map.n_anchors == 0:
                 return self.map.decode(np.zeros(3), torch.zeros(self.map.n_anchors, dtype=torch.bool))
-            poses = [self._poses.get(k, self.anchor_poses[k]) for k in kf_ids]
+            poses = [self._pose(k) for k in kf_ids]
             if self.map.decoder.view_dependent:
                 g = self._bake_from_keyframes(kf_ids, poses)
             else:
