@@ -16,7 +16,8 @@ from ggfslam.ggf import GeometricGaussianField, planarity_colors
 from ggfslam.ggf.amr import morph_loss, quat_z_to, shortest_axis, surfel_shape
 from ggfslam.ggf.aof import (CONSOLIDATION, EVOLUTION, SUPPRESSION, feedback_loss, feedback_targets,
                              posterior_flatness)
-from ggfslam.ggf.features import F_IN, PlaneBorrowing, anchor_geometry, local_geometry, positional_encoding
+from ggfslam.ggf.features import (F_IN, PlaneBorrowing, anchor_geometry, borrow_planes, local_geometry,
+                                  positional_encoding)
 from ggfslam.ggf.field import ResidualField, planar_prior, planar_probability
 from ggfslam.render.api import rasterize
 from ggfslam.render.projection import quat_to_rotmat
@@ -106,6 +107,30 @@ def test_plane_borrowing_at_an_edge():
     kc0 = local_geometry(cyl, 32, cell=0.08).curvature
     kc1 = local_geometry(cyl, 32, cell=0.08, borrow=borrow).curvature
     assert kc1.min() > 2 * CFG.tau and kc1.min() == kc0.min()  # no patch on it is flat enough to lend
+
+
+def test_plane_borrowing_kernel_matches_the_array_formula():
+    """``borrow_planes``' compiled loop against the same rule written with whole arrays: every point takes the
+    first flattest lending patch among its k nearest, if flatter than its own."""
+    edge, _ = _edge_and_cylinder()
+    rng = np.random.default_rng(3)
+    pts = edge + rng.normal(0, 0.004, edge.shape)  # noisy: many candidates lend, many do not
+    borrow = PlaneBorrowing(k=24, tol=0.01, factor=4.0, min_curvature=0.0)
+    n0, k0, _, _ = local_geometry(pts, 32, cell=0.08)
+    cen = pts + rng.normal(0, 0.01, pts.shape)
+    thick = rng.uniform(0, 0.01, len(pts)).astype(np.float32)
+    got_n, got_c, got_p = borrow_planes(pts, n0, k0, cen, thick, borrow, chunk=500)
+    idx = np.argsort(((pts[:, None] - pts[None]) ** 2).sum(-1), axis=1, kind="stable")[:, :borrow.k + 1]  # [N, k]
+    off = np.abs(np.einsum("nkd,nkd->nk", n0[idx].astype(np.float64), pts[:, None, :] - cen[idx]))
+    cand = np.where(off <= 2.0 * thick[idx].astype(np.float64) + borrow.tol, borrow.factor * k0[idx], np.inf)
+    best = cand.argmin(axis=1)
+    flat = cand[np.arange(len(pts)), best]
+    pick = flat < k0
+    lender = idx[np.arange(len(pts)), best]
+    assert 0.05 < pick.mean() < 0.95
+    np.testing.assert_array_equal(got_c, np.where(pick, flat, k0))
+    np.testing.assert_array_equal(got_n, np.where(pick[:, None], n0[lender], n0))
+    np.testing.assert_array_equal(got_p, np.where(pick[:, None], cen[lender], cen))
 
 
 def _plane_map(n=12, spacing=0.04, obs=5.0):

@@ -27,6 +27,7 @@ from typing import NamedTuple
 import numpy as np
 import open3d as o3d
 import torch
+from numba import njit, prange
 
 from ggfslam.gaussians.anchor_map import voxel_keys
 
@@ -142,21 +143,42 @@ def borrow_planes(points: np.ndarray, normals: np.ndarray, curvature: np.ndarray
     k = min(borrow.k + 1, n)
     out_n, out_c, out_p = normals.copy(), curvature.copy(), centroids.copy()
     borrowers = np.nonzero(curvature > borrow.min_curvature)[0]
+    pts = np.ascontiguousarray(points, np.float64)
+    cen = np.ascontiguousarray(centroids, np.float64)
     for s in range(0, len(borrowers), chunk):
         rows = borrowers[s:s + chunk]
-        q = points[rows]
-        idx, _ = _knn(points, q, k)  # [C, k], itself included
-        off = np.abs(np.einsum("ckd,ckd->ck", normals[idx], q[:, None, :] - centroids[idx]))  # [C, k]
-        lends = off <= 2.0 * thickness[idx] + borrow.tol
-        cand = np.where(lends, borrow.factor * curvature[idx], np.inf)  # [C, k]
-        best = cand.argmin(axis=1)
-        flat = cand[np.arange(len(q)), best]
-        pick = flat < curvature[rows]
-        out_c[rows[pick]] = flat[pick]
-        lender = idx[pick, best[pick]]
-        out_n[rows[pick]] = normals[lender]
-        out_p[rows[pick]] = centroids[lender]
+        idx, _ = _knn(pts, pts[rows], k)  # [C, k], itself included
+        _borrow_rows(rows, idx.astype(np.int64), pts, normals, curvature, cen, thickness, float(borrow.tol),
+                     float(borrow.factor), out_n, out_c, out_p)
     return out_n, out_c, out_p
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _borrow_rows(rows, idx, points, normals, curvature, centroids, thickness, tol, factor, out_n, out_c, out_p):
+    """Body of ``borrow_planes`` for the points ``rows`` [C] and their neighbours idx [C, k]: each takes the
+    flattest lending patch (the first of equals, in neighbour order) if it is flatter than its own."""
+    for r in prange(rows.shape[0]):
+        i = rows[r]
+        best = -1
+        flat = np.inf
+        for j in range(idx.shape[1]):
+            m = idx[r, j]
+            off = abs(np.float64(normals[m, 0]) * (points[i, 0] - centroids[m, 0])
+                      + np.float64(normals[m, 1]) * (points[i, 1] - centroids[m, 1])
+                      + np.float64(normals[m, 2]) * (points[i, 2] - centroids[m, 2]))
+            if off <= 2.0 * np.float64(thickness[m]) + tol:
+                c = factor * np.float64(curvature[m])
+                if c < flat:
+                    flat = c
+                    best = m
+        if best >= 0 and flat < curvature[i]:
+            out_c[i] = flat
+            out_n[i, 0] = normals[best, 0]
+            out_n[i, 1] = normals[best, 1]
+            out_n[i, 2] = normals[best, 2]
+            out_p[i, 0] = centroids[best, 0]
+            out_p[i, 1] = centroids[best, 1]
+            out_p[i, 2] = centroids[best, 2]
 
 
 @dataclass
