@@ -361,7 +361,9 @@ class MappingConfig(_Section):
     coarse_min_width: int = 200
     """Narrowest half-size image worth a coarse step."""
     crop: float = 1.0
-    """Steps at the training size train a random crop of this fraction of the width and height (1 = whole)."""
+    """Steps at the training size train a random crop of this fraction of the width and height (1 = whole). A crop
+    costs about its share of the pixels; its loss never ranks keyframes for the final refinement (whole images
+    at half size do then), so without coarse levels crops leave those draws uniform."""
     iterations_per_keyframe: int = 25
     """Optimization steps after each new keyframe, at least (see ``iterations_per_frame``)."""
     iterations_per_frame: float = 3.0

@@ -251,6 +251,22 @@ def test_keyframe_budget_follows_the_frames_between_keyframes(tmp_path, sequence
     assert [m.keyframe_budget(k) for k in (0, 1, 2)] == [7, 7, 25]  # at least 7; 2.5 per frame since the last
 
 
+def test_keyframe_errors_come_from_whole_images_at_one_size(sequence):
+    """``_by_error`` compares keyframes by their last photometric loss, so it is taken at one size only and on
+    whole images: the training size, or half of it where the training-size steps are crops."""
+    gt, f = sequence.gt_poses, sequence[0]
+    for kw, level in (({"coarse_fraction": 0.3, "crop": 0.5}, 1), ({"coarse_fraction": 0.85}, 0)):
+        m = _mapper(sequence, {0: gt[0]}, coarse_min_width=64, **kw)
+        m.add_keyframe(0, 0, f.rgb, f.depth)
+        assert m.error_level == level
+        m.step(0, 0, (0, 0, 80, 60))  # a crop never counts
+        assert 0 not in m.kf_loss
+        m.step(0, 1 - level)  # nor the other size
+        assert 0 not in m.kf_loss
+        m.step(0, level)
+        assert m.kf_loss[0] == m.last_losses["photo"] > 0
+
+
 def test_compiled_normal_loss_matches_the_torch_chain():
     """normal_loss_from_depth == normal_loss(normals_from_depth(depth)) in value and gradient, holes included."""
     from ggfslam.mapping.loss_kernels import normal_loss_from_depth

@@ -77,6 +77,9 @@ class Mapper:
         self.store = KeyframeStore(store_dir, self.intr, cfg.keyframe_cache)
         # coarse-to-fine only where half the training size still has detail to learn from
         self.coarse_levels = cfg.coarse_fraction > 0 and self.intr.width >= 2 * cfg.coarse_min_width
+        # the level whose whole-image steps measure each keyframe's error for ``_by_error`` (one size, so errors
+        # compare): the training size, or half of it where the training-size steps are crops
+        self.error_level = 1 if self.coarse_levels and cfg.crop < 1.0 else 0
         # anchors are seeded from, and the field observes, images at most GEOMETRY_WIDTH wide: sensor depth noise
         # at 640 px would seed anchors in every voxel it scatters into (1.7x the anchors of the 320 px depth,
         # whose 2x2 means are smoother), and the field's filters were tuned at that scale
@@ -405,7 +408,7 @@ class Mapper:
             self.train_seconds += time.perf_counter() - t0
             self.last_losses = {"loss": loss.item(), "photo": l_photo.item(), "depth": l_depth.item(),
                                 "normal": l_normal.item(), "morph": float(l_morph.detach())}
-            if level == 0 and crop is None:  # comparable across keyframes: whole images at the training size
+            if level == self.error_level and crop is None:  # comparable across keyframes: whole images, one size
                 self.kf_loss[kf_id] = self.last_losses["photo"]
             return self.last_losses
 
