@@ -46,6 +46,8 @@ DEMO_CONFIG = {
     "dataset": {"kind": "synthetic",
                 "synthetic": {"source": "procedural", "n_frames": 120, "width": 640, "height": 480,
                               "trajectory": "orbit", "seed": 0, "depth_noise": True}},
+    # rendered depth is registered to the colour exactly: trusted as configs/synthetic/default.yaml does
+    "tracking": {"virtual_baseline": 0.5},
 }
 
 

@@ -52,6 +52,26 @@ def test_rgbd_factor_zero_at_truth_and_jacobians_match_numerical():
         np.testing.assert_allclose(A[:, 6:9], w * H_point, rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.parametrize("baseline", [0.08, 0.5])
+def test_rgbd_factor_depth_sigma_is_pixel_sigma_times_z2_over_fb(baseline):
+    """The depth noise a virtual baseline stands for (``TrackingConfig.virtual_baseline``): a landmark moved by dz
+    along the keypoint's ray costs a whitened error of dz f b / (z^2 sigma) (first order), nothing in u or v."""
+    mono, stereo = calibrations(CAM, baseline)
+    sigma, z = 1.5, 2.0
+    ray = np.array([0.25, -0.1, 1.0])
+    uv = np.array([CAM.fx * ray[0] + CAM.cx, CAM.fy * ray[1] + CAM.cy])
+    f = observation_factor(0, 1, uv, z, sigma, mono, stereo, 1e6, 1e6)  # no robust down-weighting
+    for dz in (-2e-3, 1e-3):
+        v = gtsam.Values()
+        v.insert(X(0), gtsam.Pose3())
+        v.insert(L(1), gtsam.Point3(*(ray * (z + dz))))
+        e = f.whitenedError(v)  # [uL, uR, v] / sigma
+        np.testing.assert_allclose(e[[0, 2]], 0, atol=1e-9)
+        expected = CAM.fx * baseline * dz / (z * (z + dz)) / sigma  # exact: f b (1/z - 1/(z + dz))
+        np.testing.assert_allclose(abs(e[1]), abs(expected), rtol=1e-9)
+        np.testing.assert_allclose(abs(e[1]), abs(dz) * CAM.fx * baseline / (z * z * sigma), rtol=2e-3)
+
+
 def _build_map(rng, n_kf=4, n_pts=400):
     """Keyframes moving along x looking at a wall of points; exact observations from the true poses."""
     smap = SlamMap()
