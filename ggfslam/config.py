@@ -194,9 +194,10 @@ class TrackingConfig(_Section):
     """Baseline b (m) of the virtual stereo camera that turns depth into a right-image coordinate u - f_x b / z
     (RGB-D ORB-SLAM), in tracking and bundle adjustment: how far depth is trusted. With a keypoint's pixel sigma s it
     models a depth sigma of s z^2 / (f_x b): at 0.08 and f_x = 525, 2.4 cm at 1 m and 9.5 cm at 2 m for a level-0
-    keypoint, several times a Kinect's noise. Kept for real sensors, whose colour and depth disagree by more than their
-    noise (registration, timing): on the 7-Scenes kitchen 0.5 lowered the ATE 4.86 -> 3.81 cm but the map lost
-    1.2 dB. Exactly registered depth earns more (Replica configs: 0.5, ATE 0.72 -> 0.51 cm); see README."""
+    keypoint, several times a Kinect's noise. The default suits real sensors, whose colour and depth disagree by more
+    than their noise (registration, timing): on the 7-Scenes kitchen 0.5 lowered the ATE 4.86 -> 3.81 cm but its map
+    lost 1.2 dB. Exactly registered depth earns more (the synthetic and Replica configs set 0.5: Replica ATE
+    0.72 -> 0.51 cm); see README."""
     match_radius: float = 12.0
     """Search radius (px, at pyramid level 0) when matching projected map points."""
     match_max_distance: int = 64
