@@ -8,6 +8,10 @@ Sequences (positional, one or more):
 * ``synthetic-loop:N``: the same room along the loop trajectory;
 * ``replica:N``: Replica office0 rendered from the shared mesh along its traj.txt, N frames at 600x340.
 
+The rendered sequences (``synthetic:N``, ``synthetic-loop:N``, ``replica:N``) trust depth as the configs of rendered
+sequences do (``tracking.virtual_baseline: 0.5``: their depth is registered to the colour exactly); ``--set``
+overrides it.
+
 Every (sequence, method) pair is one ``ggfslam.slam.run`` into a scratch run directory, in a fresh process
 so that peak RSS is that run's own. Reported per run: ATE RMSE (cm, all frames, lost frames included at
 their last pose), frames, frames lost, tracking frames/s (time in ``tracker.track`` only, image loading
@@ -43,6 +47,10 @@ def log(msg: str) -> None:
     print(f"[{Path(sys.argv[0]).stem or 'bench_tracking'}] {msg}", file=sys.stderr, flush=True)
 
 
+RENDERED_VIRTUAL_BASELINE = 0.5
+"""``tracking.virtual_baseline`` of the rendered sequences, as configs/synthetic and configs/replica set it."""
+
+
 def sequence_config(spec: str, overrides: list[str]) -> dict:
     """Raw config dict (before validation) for a sequence spec, with ``--set`` overrides applied."""
     import yaml
@@ -61,7 +69,8 @@ def sequence_config(spec: str, overrides: list[str]) -> dict:
         else:
             syn = {"source": "procedural", "n_frames": n, "width": 640, "height": 480, "depth_noise": True,
                    "trajectory": "loop" if kind == "synthetic-loop" else "orbit"}
-        data = {"name": f"{kind}-{n}", "dataset": {"kind": "synthetic", "synthetic": syn}}
+        data = {"name": f"{kind}-{n}", "dataset": {"kind": "synthetic", "synthetic": syn},
+                "tracking": {"virtual_baseline": RENDERED_VIRTUAL_BASELINE}}
     else:
         path = Path(spec)
         if path.is_file() and path.suffix in (".yaml", ".yml"):
