@@ -47,14 +47,11 @@ def log(msg: str) -> None:
     print(f"[{Path(sys.argv[0]).stem or 'bench_tracking'}] {msg}", file=sys.stderr, flush=True)
 
 
-RENDERED_VIRTUAL_BASELINE = 0.5
-"""``tracking.virtual_baseline`` of the rendered sequences, as configs/synthetic and configs/replica set it."""
-
-
 def sequence_config(spec: str, overrides: list[str]) -> dict:
     """Raw config dict (before validation) for a sequence spec, with ``--set`` overrides applied."""
     import yaml
 
+    from ggfslam.cli import RENDERED_VIRTUAL_BASELINE
     from ggfslam.config import apply_overrides
     from ggfslam.errors import ConfigError
 

@@ -41,13 +41,16 @@ def user_errors(fn):
     return wrapper
 
 
+RENDERED_VIRTUAL_BASELINE = 0.5
+"""``tracking.virtual_baseline`` for rendered sequences, whose depth is registered to the colour exactly: the demo's
+and the benchmarks' (configs/synthetic and configs/replica write the same value; see ``TrackingConfig``)."""
+
 DEMO_CONFIG = {
     "name": "demo",
     "dataset": {"kind": "synthetic",
                 "synthetic": {"source": "procedural", "n_frames": 120, "width": 640, "height": 480,
                               "trajectory": "orbit", "seed": 0, "depth_noise": True}},
-    # rendered depth is registered to the colour exactly: trusted as configs/synthetic/default.yaml does
-    "tracking": {"virtual_baseline": 0.5},
+    "tracking": {"virtual_baseline": RENDERED_VIRTUAL_BASELINE},  # as configs/synthetic/default.yaml
 }
 
 
