@@ -41,7 +41,8 @@ class CameraConfig(_Section):
     depth_scale: float = 5000.0
     """Raw depth units per metre (TUM 5000, ScanNet 1000, Replica 6553.5)."""
     distortion: list[float] = []
-    """OpenCV distortion k1 k2 p1 p2 [k3]; empty for undistorted images."""
+    """OpenCV distortion k1 k2 p1 p2 [k3] of the colour camera; empty for undistorted images. Frames are undistorted
+    when read (keeping their size; the pinhole camera they then are is in run.json ``camera``)."""
 
 
 class DepthRegistrationConfig(_Section):

@@ -113,9 +113,14 @@ def render_run(run_dir: str | Path, frames: str = "keyframes", path: str | Path 
 
 
 def run_camera(run_dir: Path):
-    """The camera a run was made with (from its run.json)."""
+    """The pinhole camera a run's frames were (from its run.json)."""
     from ggfslam.data.types import Camera
     from ggfslam.rundir import RUN_INFO_FILE, read_json
 
     cam = dict(read_json(run_dir / RUN_INFO_FILE)["camera"])
-    return Camera(**{**cam, "distortion": tuple(cam.get("distortion", ()))})
+    if cam.get("distortion"):
+        # runs now record the camera of the undistorted frames; this one read distorted images as pinhole ones
+        raise RunDirError(f"{run_dir / RUN_INFO_FILE}: camera has lens distortion {cam['distortion']}: the run was made "
+                          "before ggfslam undistorted frames (2026-12-04), so its map and poses do not match the frames "
+                          "read now; run the sequence again")
+    return Camera(**{**cam, "distortion": ()})

@@ -16,6 +16,7 @@ from ggfslam.data.replica import ReplicaDataset
 from ggfslam.data.scannet import ScanNetDataset
 from ggfslam.data.tum import TUM_CAMERAS, TUMDataset, associate, read_image_list, tum_default_camera
 from ggfslam.data.types import Camera, Frame
+from ggfslam.data.undistort import Undistortion
 from ggfslam.data.writer import write_tum_sequence
 from ggfslam.errors import ConfigError
 from ggfslam.geometry.se3 import rigidity_error
@@ -211,7 +212,9 @@ def test_tum_reads_camera_yaml_and_explicit_camera_wins(make_tum):
     assert ds.camera == cam
     np.testing.assert_allclose(ds[0].depth, 2 * TUMDataset(root)[0].depth)
     (root / "camera.yaml").unlink()
-    assert TUMDataset(root).camera == TUM_CAMERAS[1]  # falls back to the folder name
+    fallback = TUMDataset(root)
+    assert fallback._raw_camera() == TUM_CAMERAS[1]  # falls back to the folder name
+    assert fallback.camera == Undistortion(TUM_CAMERAS[1]).camera  # whose frames come out undistorted
 
 
 def test_tum_default_camera_from_folder_name():

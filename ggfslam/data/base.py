@@ -10,6 +10,7 @@ import numpy as np
 
 from ggfslam.data.imageio import read_depth, read_rgb
 from ggfslam.data.types import Camera, Frame
+from ggfslam.data.undistort import Undistortion, undistortion_of
 from ggfslam.errors import DatasetError
 from ggfslam.geometry.depth import register_depth
 from ggfslam.geometry.se3 import invert
@@ -19,7 +20,9 @@ class RGBDDataset(ABC):
     """A sequence of RGB-D frames read on demand, with start/stop/stride selection and optional resize.
 
     Subclasses index raw frames ``0 .. _raw_len()-1`` and implement ``_load``; this class maps the
-    selection (``start``, ``stop``, ``stride``) onto them and resizes images (intrinsics scaled to match).
+    selection (``start``, ``stop``, ``stride``) onto them, removes the colour camera's lens distortion
+    (``data/undistort.py``: frames and ``camera`` are pinhole from here on) and resizes images (intrinsics scaled
+    to match).
     """
 
     def __init__(
@@ -44,6 +47,7 @@ class RGBDDataset(ABC):
         self._indices: np.ndarray | None = None
         self._registration: tuple[tuple[float, float, float, float], np.ndarray] | None = None
         self._T_depth_color: np.ndarray | None = None  # [4, 4] set when the ground truth is the depth camera's
+        self._undistortion: tuple[Camera, Undistortion | None] | None = None  # (raw camera it is for, maps)
 
     # --- for subclasses -------------------------------------------------------------------------
     @abstractmethod
@@ -71,10 +75,8 @@ class RGBDDataset(ABC):
                                T_color_depth: np.ndarray, ground_truth_of_depth: bool = False) -> None:
         """Warp every depth image into the colour camera when read: the depth camera's pinhole (fx, fy, cx, cy)
         and T_color_depth [4, 4] (``geometry.depth.register_depth``); with ``ground_truth_of_depth`` the
-        ground-truth poses (the depth camera's) are moved to the colour camera."""
-        if self._raw_camera().distortion:
-            raise DatasetError(self.root, "depth registration needs undistorted colour images, but the camera has "
-                                          f"distortion {list(self._raw_camera().distortion)}")
+        ground-truth poses (the depth camera's) are moved to the colour camera. A distorted colour camera's depth is
+        warped into its undistorted (pinhole) image."""
         self._registration = (tuple(float(x) for x in depth_intrinsics), np.asarray(T_color_depth, np.float64))
         self._T_depth_color = invert(self._registration[1]) if ground_truth_of_depth else None
 
@@ -93,10 +95,19 @@ class RGBDDataset(ABC):
                 raise DatasetError(self.root, f"selection start={self._start} stop={self._stop} is empty")
         return self._indices
 
+    def _pinhole(self) -> tuple[Camera, Undistortion | None]:
+        """The colour camera after undistortion (the raw one when it has no distortion) and the maps that make it."""
+        raw = self._raw_camera()
+        if self._undistortion is None or self._undistortion[0] != raw:
+            und = undistortion_of(raw)
+            self._undistortion = (raw, und)
+        und = self._undistortion[1]
+        return (raw if und is None else und.camera), und
+
     @property
     def camera(self) -> Camera:
-        """Intrinsics of the frames this dataset yields (after resize)."""
-        cam = self._raw_camera()
+        """Intrinsics of the frames this dataset yields (pinhole: after undistortion, and after resize)."""
+        cam = self._pinhole()[0]
         if self._resize is not None:
             cam = cam.resized(*self._resize)
         return cam
@@ -132,9 +143,14 @@ class RGBDDataset(ABC):
         rgb, depth, name = self._load(raw)
         raw_cam = self._raw_camera()
         check_frame_shapes(name, rgb, depth, raw_cam)
-        if self._registration is not None:
-            depth = register_depth(depth, self._registration[0], (raw_cam.fx, raw_cam.fy, raw_cam.cx, raw_cam.cy),
-                                   self._registration[1], raw_cam.width, raw_cam.height)
+        cam, und = self._pinhole()
+        if und is not None:
+            rgb = und.rgb(rgb)
+            if self._registration is None:  # depth registered to the raw colour image: the same warp
+                depth = und.depth(depth)
+        if self._registration is not None:  # the depth camera's image, straight into the pinhole colour camera
+            depth = register_depth(depth, self._registration[0], (cam.fx, cam.fy, cam.cx, cam.cy),
+                                   self._registration[1], cam.width, cam.height)
         if self._resize is not None and self._resize != (raw_cam.width, raw_cam.height):
             w, h = self._resize
             rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)

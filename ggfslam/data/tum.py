@@ -123,8 +123,9 @@ class TUMDataset(ImageFileDataset):
     only when its frame is read (a run then skips that frame, ``dataset.on_bad_frame``).
 
     Intrinsics: ``camera`` if given (its ``depth_scale`` is used as is), else ``camera.yaml`` in ``root``,
-    else the published TUM intrinsics when the folder name says freiburg1/2/3. Images are not undistorted:
-    the distortion stays in ``camera.distortion``.
+    else the published TUM intrinsics when the folder name says freiburg1/2/3. fr1 and fr2 images carry their
+    lens distortion; frames come out undistorted and ``camera`` is the pinhole camera they are then
+    (``data/undistort.py``).
     """
 
     def __init__(

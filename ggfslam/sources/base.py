@@ -15,12 +15,13 @@ import logging
 import queue
 import threading
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from ggfslam.data.types import Camera, Frame
+from ggfslam.data.undistort import undistortion_of
 from ggfslam.errors import DatasetError, GGFSlamError
 
 log = logging.getLogger("ggfslam")
@@ -150,19 +151,24 @@ class LiveSource:
     def __iter__(self):
         while (a := self.queue.get()) is not None:
             if self.sequence is not None and a.frame is not None:
-                self.sequence.record(a.frame)
+                self.sequence.record(a.frame)  # as the sensor gave it
+                a = replace(a, frame=self.sequence.undistort(a.frame))
             yield a
 
 
 class LiveSequence:
     """The sequence of a sensor run as the run reads it: the camera, every received frame's timestamp, and the
     frames the run took, recorded in TUM layout in ``folder`` by a writer thread (so ``ggfslam eval``, ``render``
-    and ``view`` read the run later, and it can be run again offline). Frames dropped live are not recorded."""
+    and ``view`` read the run later, and it can be run again offline). Frames dropped live are not recorded.
+    The recording keeps the sensor's images and camera (``raw_camera``, with its distortion); the run reads them
+    undistorted (``camera``, ``undistort``; data/undistort.py), as a dataset reading the recording does."""
 
     gt_poses = None
 
     def __init__(self, camera: Camera, name: str, folder: Path | None, depth_scale: float = 1000.0):
-        self.camera, self.name, self.folder, self.depth_scale = camera, name, folder, depth_scale
+        self.raw_camera, self.name, self.folder, self.depth_scale = camera, name, folder, depth_scale
+        self._undistortion = undistortion_of(camera)
+        self.camera = camera if self._undistortion is None else self._undistortion.camera
         self._stamps: list[float] = []
         self._files: dict[int, tuple[Path, Path]] = {}
         self._writer = None
@@ -191,6 +197,11 @@ class LiveSequence:
         cam = self.camera
         return f"{self.name} ({len(self)} frames, {cam.width}x{cam.height})"
 
+    def undistort(self, frame: Frame) -> Frame:
+        """The frame as the run reads it: undistorted when the sensor's camera has distortion."""
+        u = self._undistortion
+        return frame if u is None else replace(frame, rgb=u.rgb(frame.rgb), depth=u.depth(frame.depth))
+
     def record(self, frame: Frame) -> None:
         """Queue a frame the run takes for writing (no-op without a folder)."""
         if self.folder is None or self._closed:
@@ -198,7 +209,7 @@ class LiveSequence:
         if self._thread is None:
             from ggfslam.data.writer import TumSequenceWriter
 
-            self._writer = TumSequenceWriter(self.folder, self.camera, self.depth_scale)
+            self._writer = TumSequenceWriter(self.folder, self.raw_camera, self.depth_scale)
             self._thread = threading.Thread(target=self._write, name="ggfslam-recorder", daemon=True)
             self._thread.start()
         self._todo.put(frame)
@@ -229,4 +240,4 @@ class LiveSequence:
         if i not in self._files:
             raise DatasetError(self.folder or self.name, f"frame {i} was not recorded (it was dropped while live)")
         rgb, depth = self._files[i]
-        return Frame(i, self._stamps[i], read_rgb(rgb), read_depth(depth, self.depth_scale))
+        return self.undistort(Frame(i, self._stamps[i], read_rgb(rgb), read_depth(depth, self.depth_scale)))
