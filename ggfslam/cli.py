@@ -410,6 +410,11 @@ def calibrate_depth(
     if cfg.dataset.depth_registration is not None:
         raise ConfigError(f"{config}: dataset.depth_registration is already set; fit on the unregistered sequence")
     ds = open_dataset_from_config(cfg.dataset)
+    if ds.raw_camera.distortion:
+        # the fit holds the depth camera's pinhole intrinsics and moves a pinhole colour camera against them
+        raise ConfigError(f"{config}: the camera has lens distortion {list(ds.raw_camera.distortion)}; calibrate-depth "
+                          "fits pinhole cameras: set dataset.camera.distortion to [] (the depth camera's) and "
+                          "undistort the colour images before fitting")
     cam = ds.camera
     fit = fit_depth_registration(ds, n_frames=frames, baseline_guess=baseline)
     # plain text, never re-wrapped: it is pasted into a config

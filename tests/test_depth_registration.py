@@ -240,6 +240,11 @@ def test_calibrate_depth_prints_a_config_that_registers_the_sequence(tmp_path):
     cfg_path.write_text(yaml.safe_dump({"dataset": {"kind": "tum", "path": str(root), **pasted}}))
     res = CliRunner().invoke(app, ["calibrate-depth", str(cfg_path)])
     assert res.exit_code == 2 and "already set" in res.output
+    # so is a camera with lens distortion: the fit moves pinhole cameras
+    cfg_path.write_text(yaml.safe_dump({"dataset": {"kind": "tum", "path": str(root), "camera": {
+        **pasted["camera"], "distortion": [0.1, 0.0, 0.0, 0.0]}}}))
+    res = CliRunner().invoke(app, ["calibrate-depth", str(cfg_path)])
+    assert res.exit_code == 2 and "lens distortion" in res.output
 
 
 def _synthetic_depth(k: int) -> np.ndarray:

@@ -213,7 +213,7 @@ def test_tum_reads_camera_yaml_and_explicit_camera_wins(make_tum):
     np.testing.assert_allclose(ds[0].depth, 2 * TUMDataset(root)[0].depth)
     (root / "camera.yaml").unlink()
     fallback = TUMDataset(root)
-    assert fallback._raw_camera() == TUM_CAMERAS[1]  # falls back to the folder name
+    assert fallback.raw_camera == TUM_CAMERAS[1]  # falls back to the folder name
     assert fallback.camera == Undistortion(TUM_CAMERAS[1]).camera  # whose frames come out undistorted
 
 

@@ -207,7 +207,7 @@ def test_live_sequence_records_the_sensor_images_and_reads_them_undistorted(tmp_
     seq.record(raw)
     seq.close()
     back = TUMDataset(tmp_path / "rec")  # the recording: the sensor's images and camera, distortion included
-    assert back._raw_camera().distortion == FR1.distortion
+    assert back.raw_camera.distortion == FR1.distortion
     got = seq[0]
     np.testing.assert_allclose(got.rgb, back[0].rgb, atol=1e-6)  # live and offline read it alike
     np.testing.assert_array_equal(got.depth, back[0].depth)

@@ -105,6 +105,11 @@ class RGBDDataset(ABC):
         return (raw if und is None else und.camera), und
 
     @property
+    def raw_camera(self) -> Camera:
+        """The camera of the stored images, with its lens distortion (``camera`` is the frames' pinhole one)."""
+        return self._raw_camera()
+
+    @property
     def camera(self) -> Camera:
         """Intrinsics of the frames this dataset yields (pinhole: after undistortion, and after resize)."""
         cam = self._pinhole()[0]
