@@ -166,7 +166,8 @@ def _rgb(frame, rs) -> np.ndarray:
 
 
 def _camera(intr, rs) -> Camera:
-    """The colour stream's pinhole intrinsics (depth is aligned to it); distortion kept when OpenCV's model fits."""
+    """The colour stream's intrinsics (depth is aligned to it), with its distortion when OpenCV's model fits (the run
+    reads the frames undistorted, see ``LiveSequence``)."""
     coeffs = tuple(float(c) for c in intr.coeffs)
     distortion: tuple[float, ...] = ()
     if any(abs(c) > 1e-12 for c in coeffs):
