@@ -44,6 +44,15 @@ class CameraConfig(_Section):
     """OpenCV distortion k1 k2 p1 p2 [k3] of the colour camera; empty for undistorted images. Frames are undistorted
     when read (keeping their size; the pinhole camera they then are is in run.json ``camera``)."""
 
+    @model_validator(mode="after")
+    def _check(self) -> "CameraConfig":
+        from ggfslam.data.types import DISTORTION_LENGTHS
+
+        if len(self.distortion) not in DISTORTION_LENGTHS:
+            raise ValueError(f"camera.distortion must have {', '.join(map(str, DISTORTION_LENGTHS))} coefficients "
+                             f"(OpenCV order k1 k2 p1 p2 [k3 ...]), got {len(self.distortion)}")
+        return self
+
 
 class DepthRegistrationConfig(_Section):
     """A depth camera that is not registered to the colour camera (raw Kinect v1 streams, 7-Scenes): its own

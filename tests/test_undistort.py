@@ -15,7 +15,7 @@ import pytest
 from ggfslam.data.tum import TUM_CAMERAS, TUMDataset
 from ggfslam.data.types import Camera, Frame
 from ggfslam.data.undistort import DEPTH_SURFACE_SPREAD, SurfaceDepthSampler, Undistortion, undistortion_of
-from ggfslam.data.writer import TumSequenceWriter
+from ggfslam.data.writer import write_tum_sequence
 from ggfslam.sources.base import LiveSequence
 
 FR1 = TUM_CAMERAS[1]  # fx 517.3, k1 0.26, k2 -0.95, k3 1.16: a median 4.8 px between raw and pinhole pixels
@@ -154,13 +154,6 @@ def test_a_camera_without_distortion_is_left_alone():
         Undistortion(replace(FR1, distortion=(0.1, 0.2, 0.3)))
 
 
-def _write_tum(folder, frames, camera):
-    w = TumSequenceWriter(folder, camera, 5000.0)
-    for f in frames:
-        w.add(f)
-    w.close()
-
-
 def _scene_frames(n=2):
     rng = np.random.default_rng(1)
     frames = []
@@ -174,7 +167,7 @@ def _scene_frames(n=2):
 
 def test_tum_dataset_with_distortion_yields_undistorted_frames(tmp_path):
     raw = _scene_frames()
-    _write_tum(tmp_path / "seq", raw, FR1)
+    write_tum_sequence(tmp_path / "seq", raw, FR1)
     ds = TUMDataset(tmp_path / "seq")
     und = Undistortion(FR1)
     assert ds.camera == und.camera  # the pinhole camera of the frames, no distortion left
@@ -188,7 +181,7 @@ def test_tum_dataset_with_distortion_yields_undistorted_frames(tmp_path):
 
 
 def test_depth_registration_goes_into_the_undistorted_colour_camera(tmp_path):
-    _write_tum(tmp_path / "seq", _scene_frames(1), FR1)
+    write_tum_sequence(tmp_path / "seq", _scene_frames(1), FR1)
     ds = TUMDataset(tmp_path / "seq")
     ds.set_depth_registration((FR1.fx, FR1.fy, FR1.cx, FR1.cy), np.eye(4))  # was refused with a distorted camera
     depth = ds[0].depth
@@ -236,7 +229,7 @@ def test_a_distorted_sequence_tracks_like_the_ideal_one_once_its_distortion_is_d
     seq = SyntheticSequence(n_frames=120, width=320, height=240, trajectory="orbit", seed=0)
     lens = replace(seq.camera, distortion=FR1.distortion)  # TUM fr1's lens on the rendered camera
     raw = [distort_frame(f, lens) for f in seq]
-    _write_tum(tmp_path / "seq", raw, lens)
+    write_tum_sequence(tmp_path / "seq", raw, lens)
     ds = TUMDataset(tmp_path / "seq")
     declared = _track_ate(list(ds), ds.camera, seq)
     ignored = _track_ate(raw, seq.camera, seq)  # the distorted images read as pinhole ones (before 2026-12-04)
@@ -257,3 +250,14 @@ def test_a_run_that_read_distorted_images_as_pinhole_is_refused(tmp_path):
         run_camera(tmp_path)
     (tmp_path / RUN_INFO_FILE).write_text(json.dumps({"camera": Undistortion(FR1).camera.to_dict()}))
     assert run_camera(tmp_path) == Undistortion(FR1).camera
+
+
+def test_a_config_camera_with_a_wrong_number_of_coefficients_is_refused():
+    from ggfslam.config import config_from_dict
+    from ggfslam.errors import ConfigError
+
+    cam = {"fx": 500.0, "fy": 500.0, "cx": 320.0, "cy": 240.0, "width": 640, "height": 480}
+    with pytest.raises(ConfigError, match="distortion"):
+        config_from_dict({"dataset": {"kind": "tum", "path": ".", "camera": {**cam, "distortion": [0.1, 0.2, 0.3]}}})
+    ok = config_from_dict({"dataset": {"kind": "tum", "path": ".", "camera": {**cam, "distortion": list(FR1.distortion)}}})
+    assert ok.dataset.camera.distortion == list(FR1.distortion)

@@ -7,12 +7,11 @@ from pathlib import Path
 import yaml
 
 from ggfslam.atomic import write_text_atomic
-from ggfslam.data.types import Camera
+from ggfslam.data.types import DISTORTION_LENGTHS, Camera
 from ggfslam.errors import DatasetError
 
 CAMERA_FILE = "camera.yaml"
 _CAMERA_KEYS = ("fx", "fy", "cx", "cy", "width", "height", "depth_scale", "distortion")
-_DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)  # what OpenCV accepts
 
 
 def write_camera_yaml(path: str | Path, camera: Camera) -> None:
@@ -63,10 +62,10 @@ def read_camera_yaml(path: str | Path, default_depth_scale: float | None = None)
         if key not in data:
             raise DatasetError(path, f"field '{key}' is missing: expected {expected}")
     dist = data.get("distortion") or []
-    if not isinstance(dist, (list, tuple)) or len(dist) not in _DISTORTION_LENGTHS or not all(
+    if not isinstance(dist, (list, tuple)) or len(dist) not in DISTORTION_LENGTHS or not all(
         isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in dist
     ):
-        raise DatasetError(path, f"field 'distortion' must be a list of {', '.join(map(str, _DISTORTION_LENGTHS))} "
+        raise DatasetError(path, f"field 'distortion' must be a list of {', '.join(map(str, DISTORTION_LENGTHS))} "
                                  f"finite numbers (OpenCV order k1 k2 p1 p2 [k3 ...]), got {dist!r}")
     depth_scale = _number(path, data, "depth_scale", True) if "depth_scale" in data else float(default_depth_scale)
     return Camera(

@@ -5,6 +5,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)  # coefficient counts OpenCV's distortion model accepts (0: none)
+
 
 @dataclass(frozen=True)
 class Camera:

@@ -21,7 +21,7 @@ from dataclasses import replace
 import cv2
 import numpy as np
 
-from ggfslam.data.types import Camera
+from ggfslam.data.types import DISTORTION_LENGTHS, Camera
 
 DEPTH_SURFACE_SPREAD = 0.05  # four raw depths within 5% of each other are one surface (interpolated)
 
@@ -32,12 +32,12 @@ class Undistortion:
     def __init__(self, camera: Camera):
         if not camera.distortion:
             raise ValueError("camera has no distortion to remove")
-        if len(camera.distortion) not in (4, 5, 8, 12, 14):
-            raise ValueError(f"distortion must have 4, 5, 8, 12 or 14 OpenCV coefficients, got {len(camera.distortion)}")
+        if len(camera.distortion) not in DISTORTION_LENGTHS:
+            raise ValueError(f"distortion must have {', '.join(map(str, DISTORTION_LENGTHS[1:]))} OpenCV coefficients, "
+                             f"got {len(camera.distortion)}")
         size = (camera.width, camera.height)
         dist = np.asarray(camera.distortion, np.float64)
         K_new, _ = cv2.getOptimalNewCameraMatrix(camera.K, dist, size, 0.0, size)
-        self.raw = camera
         self.camera = replace(camera, fx=float(K_new[0, 0]), fy=float(K_new[1, 1]), cx=float(K_new[0, 2]),
                               cy=float(K_new[1, 2]), distortion=())
         # float maps: the sampling below rounds and weighs them exactly (fixed-point maps would quantize them)
