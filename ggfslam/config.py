@@ -226,6 +226,11 @@ class TrackingConfig(_Section):
     ``keyframe_max_frames`` more frames: motion-blurred keyframes blur the map. Keyframes that tracking needs
     (too few points tracked, moved or turned too far) never wait. 0 = off (at 0.9 on the 7-Scenes kitchen, whose blur
     lasts stretches rather than single frames: no gain, see README)."""
+    final_keyframe_after: int = 2
+    """The input's last frame becomes a keyframe when it was tracked and at least this many frames followed the last
+    keyframe (0 = never). Every frame is scored, but the map trains on keyframes only: what the camera saw after the
+    last keyframe was never mapped. On the demo's orbit (keyframe 108 of 120) those frames left the map empty where
+    9% of the last frame's depth was (see README, depth L1)."""
     keyframe_tracked_ratio: float = 0.75
     """Insert a keyframe when fewer than this fraction of the reference keyframe's map points are tracked."""
     keyframe_translation: float = 0.15
@@ -259,6 +264,8 @@ class TrackingConfig(_Section):
     def _check(self) -> "TrackingConfig":
         if self.keyframe_max_frames < 1:
             raise ValueError("keyframe_max_frames must be >= 1")
+        if self.final_keyframe_after < 0:
+            raise ValueError("final_keyframe_after must be >= 0 (0 = never)")
         if not 0 <= self.keyframe_sharpness_ratio <= 2:
             raise ValueError("keyframe_sharpness_ratio must be in [0, 2] (0 = off; 1 = at least the median sharpness)")
         return self

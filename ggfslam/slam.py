@@ -453,6 +453,7 @@ def _track_sequence(config: Config, dataset: RGBDDataset, run_dir: Path, st: _Ru
                 release_free_memory()  # the sample shows what the run holds, not glibc's cache of freed pages
                 st.rss.append((i + 1, round(current_rss_mb(), 1)))
             bar.update(task, advance=1, fps=st.timer.fps("tracking"))
+    _final_keyframe(st)
     if source is not None:
         source.close()  # the recording is complete before the outputs read it back
         _note_dropped(dataset, st, source, bar, task)
@@ -462,6 +463,23 @@ def _track_sequence(config: Config, dataset: RGBDDataset, run_dir: Path, st: _Ru
     stop.tracking = False
     st.frame = st.consistent = st.n
     st.wall += time.perf_counter() - t_start
+
+
+def _final_keyframe(st: _RunState) -> None:
+    """The input's last frame as a keyframe (``tracking.final_keyframe_after``), handed to the mapper like any."""
+    kf = st.tracker.promote_last_frame()
+    if kf is None:
+        return
+    frame = st.tracker.last_frame
+    for j in range(len(st.lines) - 1, 0, -1):  # its tracking.txt row now says keyframe
+        f = st.lines[j].split(" ")
+        if f[0] == str(frame.index):
+            f[3] = "1"
+            st.lines[j] = " ".join(f)
+            break
+    if st.worker is not None:
+        with st.timer("mapping"):
+            st.worker.submit(kf.id, frame.index, frame.rgb, frame.depth, _keyframe_landmarks(st.tracker, kf.id))
 
 
 def _note_dropped(dataset: RGBDDataset, st: _RunState, source, bar, task) -> None:

@@ -166,6 +166,36 @@ def test_a_keyframes_frame_is_reported_at_the_keyframes_optimized_pose():
     assert moved > 1e-4  # bundle adjustment did move keyframes away from their tracked poses
 
 
+def test_the_last_frame_becomes_a_keyframe_when_frames_followed_the_last_one():
+    """``promote_last_frame`` (the end of the input): the last frame joins the map as a keyframe at the pose it was
+    tracked at, its record then refers to it; nothing happens when it is too close to the last keyframe or off."""
+    seq = SyntheticSequence(n_frames=33, width=320, height=240, trajectory="orbit", seed=3, depth_noise=True)
+    tcfg = TrackingConfig(n_features=1000, keyframe_max_frames=10, final_keyframe_after=2)
+    tracker, results = _track(list(seq), seq.camera, tcfg)
+    last_kf = max(k.frame_index for k in tracker.map.keyframes.values())
+    assert 32 - last_kf >= 2 and not results[-1].keyframe, "the sequence must end between keyframes"
+    n_kf = len(tracker.map.keyframes)
+    _, before, _ = tracker.trajectory()
+    kf = tracker.promote_last_frame()
+    assert kf is not None and kf.frame_index == 32 and len(tracker.map.keyframes) == n_kf + 1
+    assert tracker.records[-1].ref_kf == kf.id and kf.landmark_ids.max() >= 0  # it shares the map's points
+    tracker.finish()
+    stamps, after, _ = tracker.trajectory()
+    kf_stamps, _ = tracker.keyframe_trajectory()
+    assert stamps[-1] in kf_stamps
+    # bundle adjustment refines it a little; the trajectory stays where the tracker put it and on the ground truth
+    assert np.linalg.norm(after[-1][:3, 3] - before[-1][:3, 3]) < 0.005
+    m = trajectory_metrics(stamps, after, seq.timestamps, seq.poses)
+    assert m["ate_rmse_cm"] < 1.0, m
+    assert tracker.promote_last_frame() is None  # already a keyframe
+
+    for after_frames in (0, 33):  # off, and a gap shorter than asked
+        tcfg = TrackingConfig(n_features=1000, keyframe_max_frames=10, final_keyframe_after=after_frames)
+        tracker, _ = _track(list(seq), seq.camera, tcfg)
+        n_kf = len(tracker.map.keyframes)
+        assert tracker.promote_last_frame() is None and len(tracker.map.keyframes) == n_kf
+
+
 def test_blank_frames_are_lost_then_relocalized():
     seq = SyntheticSequence(n_frames=50, width=320, height=240, trajectory="orbit", seed=4)
     frames = list(seq)

@@ -198,6 +198,36 @@ def test_render_without_the_anchors_a_keyframe_seeded(sequence):
         assert (part <= full + 1e-5).all() and part.sum() < 0.99 * full.sum()
 
 
+def test_the_map_covers_the_last_frame(tmp_path):
+    """The input's last frame becomes a keyframe (``tracking.final_keyframe_after``): 11 frames after the last timed
+    keyframe the orbit has turned far enough that, without it, a sixth of the last frame's surface is not in the map."""
+    from ggfslam.geometry.se3 import pose_from_tum
+
+    def run(after: int) -> tuple[float, dict, str]:
+        cfg = config_from_dict({
+            "name": "final-kf", "dataset": {"kind": "synthetic", "synthetic": {"n_frames": 36, "width": 320,
+                                                                                "height": 240}},
+            "tracking": {"keyframe_max_frames": 12, "final_keyframe_after": after, "virtual_baseline": 0.5},
+            "mapping": {"iterations_per_keyframe": 20, "iterations_per_frame": 0, "final_iterations": 30,
+                        "mesh": False, "train_width": 160, "eval_width": 160}}, "t")
+        out = tmp_path / f"after{after}"
+        metrics = slam.run(cfg, out, progress=False)
+        _, mapper, _ = slam.load_mapper(out)
+        f = sources.open_dataset_from_config(cfg.dataset)[35]
+        render = mapper.render(pose_from_tum(np.loadtxt(out / "trajectory.txt")[-1, 1:]))
+        _, depth = resize_rgbd(f.rgb, f.depth, mapper.intr)
+        covered = float((render.alpha.numpy()[depth > 0] > 0.5).mean())  # of the surface the sensor saw
+        return covered, metrics["rendering"], (out / "tracking.txt").read_text().splitlines()[-1]
+
+    covered, rendering, last_row = run(2)
+    assert covered > 0.98, covered
+    assert last_row.split()[:4] == ["35", last_row.split()[1], "ok", "1"], last_row  # tracking.txt marks it
+    covered_off, rendering_off, last_row_off = run(0)
+    assert covered_off < 0.9 and last_row_off.split()[3] == "0", (covered_off, last_row_off)
+    # the sequence's depth error (all frames) falls with it: empty regions count their whole depth
+    assert rendering["depth_l1_cm"] < 0.5 * rendering_off["depth_l1_cm"], (rendering, rendering_off)
+
+
 def test_keyframe_store_is_bounded_and_reads_back_from_disk(tmp_path):
     cam = Camera(100.0, 100.0, 31.5, 23.5, 64, 48)
     intr = scaled_intrinsics(cam, 32)

@@ -49,6 +49,10 @@ class OdometryBaselineTracker:
         self.lost.append(not res.ok)
         return res
 
+    def promote_last_frame(self) -> None:
+        """The baseline has no keyframes."""
+        return None
+
     def finish(self) -> None:
         """Nothing runs in the background."""
 

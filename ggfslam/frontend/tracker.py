@@ -357,6 +357,29 @@ class OrbTracker:
         self.records.append(FrameRecord(frame.index, frame.timestamp, kf.id, np.eye(4), TrackingState.OK))
         return TrackResult(T, True, 1.0, TrackingState.OK, True, 0, kf.id)
 
+    def promote_last_frame(self) -> KeyFrame | None:
+        """At the end of the input: make the last frame a keyframe when it was tracked, is not one, and at least
+        ``final_keyframe_after`` frames followed the last keyframe (so the map learns what the camera saw since);
+        returns the new keyframe, else None."""
+        n = self.cfg.final_keyframe_after
+        if n <= 0 or not self.records or self.last_frame is None:
+            return None
+        r = self.records[-1]
+        if r.state != TrackingState.OK or r.index != self.last_frame.index or r.index - self.last_kf_frame < n:
+            return None
+        T = self.map.keyframes[r.ref_kf].T_wc @ r.T_ref_cur  # [4, 4] as the backend holds it now
+        kp = np.nonzero(self.last_lm >= 0)[0]
+        with self.map.lock:
+            kp = kp[self.map.alive[self.last_lm[kp]]]  # bundle adjustment may have culled points since
+        lm = self.last_lm[kp]
+        link = None
+        if len(lm) < self.cfg.min_matches:  # placed by dense odometry: tied to its reference as in ``track``
+            link = (r.ref_kf, r.T_ref_cur.copy())
+        kf = self._new_keyframe(self.last_frame, self.last_features, T, lm, kp, link)
+        self.records[-1] = FrameRecord(r.index, r.timestamp, kf.id, np.eye(4), r.state)
+        self.last_lm = kf.landmark_ids.copy()
+        return kf
+
     def trajectory(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Final timestamps [N], camera-to-world poses [N, 4, 4] of every frame, and lost flags [N].
 
