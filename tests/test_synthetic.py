@@ -278,6 +278,14 @@ def test_write_synthetic_sequence(tmp_path):
     fr = ds[2]
     np.testing.assert_allclose(fr.depth, f2.depth, atol=1.1e-4)
     np.testing.assert_allclose(fr.T_wc, seq.poses[2], atol=1e-5)
+    # the noise-free depth comes back too (what the metrics score against), resized like the depth
+    np.testing.assert_allclose(fr.meta["depth_gt"], f2.meta["depth_gt"], atol=1.1e-4)
+    assert np.abs(fr.depth - fr.meta["depth_gt"])[fr.depth > 0].max() > 5e-3  # and it is not the noisy depth
+    small = tum.TUMDataset(out, resize=(w // 2, h // 2))[2]
+    np.testing.assert_array_equal(small.meta["depth_gt"], cv2.resize(fr.meta["depth_gt"], (w // 2, h // 2),
+                                                                      interpolation=cv2.INTER_NEAREST))
+    clean = write_synthetic_sequence(tmp_path / "clean", n_frames=2, width=w, height=h)
+    assert not (clean / "depth_gt").exists() and "depth_gt" not in tum.TUMDataset(clean)[1].meta
 
 
 def test_render_mesh_sequence_reproduces_the_scene_depth(tmp_path, scene):

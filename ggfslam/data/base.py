@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 
 from ggfslam.data.imageio import read_depth, read_rgb
-from ggfslam.data.types import Camera, Frame
+from ggfslam.data.types import NOISE_FREE_DEPTH_DIR, Camera, Frame
 from ggfslam.data.undistort import Undistortion, undistortion_of
 from ggfslam.errors import DatasetError
 from ggfslam.geometry.depth import register_depth
@@ -161,6 +161,12 @@ class RGBDDataset(ABC):
             rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
             # nearest keeps depth edges sharp: averaging across a discontinuity invents surfaces
             depth = cv2.resize(depth, (w, h), interpolation=cv2.INTER_NEAREST)
+        meta = {}
+        clean = self._noise_free_depth(raw)
+        if clean is not None and und is None and self._registration is None:  # a generated sequence: no warps
+            if self._resize is not None and self._resize != (raw_cam.width, raw_cam.height):
+                clean = cv2.resize(clean, self._resize, interpolation=cv2.INTER_NEAREST)
+            meta["depth_gt"] = np.ascontiguousarray(clean, dtype=np.float32)
         gt = self._raw_gt()
         T_wc = None if gt is None else gt[raw] if self._T_depth_color is None else gt[raw] @ self._T_depth_color
         return Frame(
@@ -170,7 +176,12 @@ class RGBDDataset(ABC):
             depth=np.ascontiguousarray(depth, dtype=np.float32),
             T_wc=None if T_wc is None else T_wc.copy(),
             name=name,
+            meta=meta,
         )
+
+    def _noise_free_depth(self, raw_index: int) -> np.ndarray | None:
+        """A generated sequence's noise-free depth [H, W] (metres) of one raw frame, else None."""
+        return None
 
     def __iter__(self) -> Iterator[Frame]:
         for i in range(len(self)):
@@ -216,6 +227,15 @@ class ImageFileDataset(RGBDDataset):
 
     def _raw_gt(self) -> np.ndarray | None:
         return self._gt
+
+    def _noise_free_depth(self, raw_index: int) -> np.ndarray | None:
+        if not hasattr(self, "_clean_dir"):
+            d = self.root / NOISE_FREE_DEPTH_DIR
+            self._clean_dir = d if d.is_dir() else None
+        if self._clean_dir is None:
+            return None
+        path = self._clean_dir / self.depth_files[raw_index].name
+        return read_depth(path, self._cam.depth_scale) if path.is_file() else None
 
     def _load(self, raw_index: int) -> tuple[np.ndarray, np.ndarray, str]:
         rgb_path = self.rgb_files[raw_index]

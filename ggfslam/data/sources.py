@@ -12,7 +12,7 @@ from ggfslam.config import DatasetConfig, SyntheticConfig, expand_path
 from ggfslam.data.base import RGBDDataset
 from ggfslam.data.types import Camera
 
-SYNTHETIC_FORMAT = 1  # bump when generated sequences change, so stale caches are not reused
+SYNTHETIC_FORMAT = 2  # bump when generated sequences change, so stale caches are not reused (2: depth_gt/)
 
 
 def cache_root() -> Path:

@@ -507,7 +507,8 @@ def render_mesh_sequence(
             cast = caster.cast(camera, T)
             img = _assemble(cast, caster.vertex_colour(cast["tri"], cast["bary"]), T, camera)
             rgb, depth = _apply_noise(img, camera, _frame_rng(seed, k), depth_noise, 0.0)
-            yield Frame(index=k, timestamp=float(stamps[k]), rgb=rgb, depth=depth, T_wc=T)
+            yield Frame(index=k, timestamp=float(stamps[k]), rgb=rgb, depth=depth, T_wc=T,
+                        meta={"depth_gt": img["depth"]} if depth_noise else {})
 
     out = write_tum_sequence(out_dir, frames(), camera, depth_scale=DEPTH_SCALE, overwrite=overwrite)
     if mesh_path.resolve() != (out / "mesh.ply").resolve():

@@ -7,6 +7,11 @@ import numpy as np
 
 DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)  # coefficient counts OpenCV's distortion model accepts (0: none)
 
+NOISE_FREE_DEPTH_DIR = "depth_gt"
+"""A folder beside ``depth/`` (same file names) with a simulated noisy sensor's noise-free depth: written from
+``Frame.meta['depth_gt']`` (data/writer.py) and read back into it (data/base.py), so that the metrics of a generated
+sequence score depth and normals against the surface rather than against the noise."""
+
 
 @dataclass(frozen=True)
 class Camera:

@@ -10,7 +10,7 @@ from ggfslam.atomic import write_text_atomic
 from ggfslam.data.camera_file import CAMERA_FILE, write_camera_yaml
 from ggfslam.data.imageio import write_depth, write_rgb
 from ggfslam.data.trajectory_io import write_tum_trajectory
-from ggfslam.data.types import Camera, Frame
+from ggfslam.data.types import NOISE_FREE_DEPTH_DIR, Camera, Frame
 from ggfslam.errors import RunDirError
 
 
@@ -38,6 +38,10 @@ class TumSequenceWriter:
         rgb, depth = self.out / "rgb" / f"{ts}.png", self.out / "depth" / f"{ts}.png"
         write_rgb(rgb, f.rgb)
         write_depth(depth, f.depth, self.depth_scale)
+        clean = f.meta.get("depth_gt") if f.meta else None
+        if clean is not None:  # a simulated sensor's noise-free depth, what the metrics score against
+            (self.out / NOISE_FREE_DEPTH_DIR).mkdir(exist_ok=True)
+            write_depth(self.out / NOISE_FREE_DEPTH_DIR / f"{ts}.png", clean, self.depth_scale)
         self.rgb_lines.append(f"{ts} rgb/{ts}.png")
         self.depth_lines.append(f"{ts} depth/{ts}.png")
         self.stamps.append(f.timestamp)
