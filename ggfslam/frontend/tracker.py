@@ -361,7 +361,7 @@ class OrbTracker:
         """At the end of the input: make the last frame a keyframe when it was tracked, is not one, and at least
         ``final_keyframe_after`` frames followed the last keyframe (so the map learns what the camera saw since);
         returns the new keyframe, else None."""
-        n = self.cfg.final_keyframe_after
+        n = getattr(self.cfg, "final_keyframe_after", 0)  # a checkpoint's tracker from before the setting: as it was
         if n <= 0 or not self.records or self.last_frame is None:
             return None
         r = self.records[-1]
