@@ -444,9 +444,7 @@ def _track_sequence(config: Config, dataset: RGBDDataset, run_dir: Path, st: _Ru
             if observer is not None:
                 observer.frame(frame, res)
             if res.keyframe and st.worker is not None:
-                with st.timer("mapping"):  # sequential mode: training; concurrent: storing the images
-                    st.worker.submit(res.keyframe_id, frame.index, frame.rgb, frame.depth,
-                                     _keyframe_landmarks(st.tracker, res.keyframe_id))
+                _map_keyframe(st, res.keyframe_id, frame)
                 if every and len(st.mapper.store) % every == 0:
                     st.checkpoint(run_dir, i + 1)
             if (i + 1) % RSS_EVERY == 0 or i + 1 == st.n:
@@ -478,8 +476,13 @@ def _final_keyframe(st: _RunState) -> None:
             st.lines[j] = " ".join(f)
             break
     if st.worker is not None:
-        with st.timer("mapping"):
-            st.worker.submit(kf.id, frame.index, frame.rgb, frame.depth, _keyframe_landmarks(st.tracker, kf.id))
+        _map_keyframe(st, kf.id, frame)
+
+
+def _map_keyframe(st: _RunState, kf_id: int, frame) -> None:
+    """Hand a new keyframe's images and landmarks to the mapping worker."""
+    with st.timer("mapping"):  # sequential mode: training; concurrent: storing the images
+        st.worker.submit(kf_id, frame.index, frame.rgb, frame.depth, _keyframe_landmarks(st.tracker, kf_id))
 
 
 def _note_dropped(dataset: RGBDDataset, st: _RunState, source, bar, task) -> None:

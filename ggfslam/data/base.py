@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
+from functools import cached_property
 from pathlib import Path
 
 import cv2
@@ -156,17 +157,16 @@ class RGBDDataset(ABC):
         if self._registration is not None:  # the depth camera's image, straight into the pinhole colour camera
             depth = register_depth(depth, self._registration[0], (cam.fx, cam.fy, cam.cx, cam.cy),
                                    self._registration[1], cam.width, cam.height)
+        # a generated sequence's noise-free depth; never warped: generated sequences need neither warp
+        clean = self._noise_free_depth(raw) if und is None and self._registration is None else None
         if self._resize is not None and self._resize != (raw_cam.width, raw_cam.height):
             w, h = self._resize
             rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
             # nearest keeps depth edges sharp: averaging across a discontinuity invents surfaces
             depth = cv2.resize(depth, (w, h), interpolation=cv2.INTER_NEAREST)
-        meta = {}
-        clean = self._noise_free_depth(raw)
-        if clean is not None and und is None and self._registration is None:  # a generated sequence: no warps
-            if self._resize is not None and self._resize != (raw_cam.width, raw_cam.height):
-                clean = cv2.resize(clean, self._resize, interpolation=cv2.INTER_NEAREST)
-            meta["depth_gt"] = np.ascontiguousarray(clean, dtype=np.float32)
+            if clean is not None:
+                clean = cv2.resize(clean, (w, h), interpolation=cv2.INTER_NEAREST)
+        meta = {} if clean is None else {"depth_gt": np.ascontiguousarray(clean, dtype=np.float32)}
         gt = self._raw_gt()
         T_wc = None if gt is None else gt[raw] if self._T_depth_color is None else gt[raw] @ self._T_depth_color
         return Frame(
@@ -228,13 +228,16 @@ class ImageFileDataset(RGBDDataset):
     def _raw_gt(self) -> np.ndarray | None:
         return self._gt
 
+    @cached_property
+    def _noise_free_dir(self) -> Path | None:
+        """``depth_gt/`` of a generated sequence, None for any other folder."""
+        d = self.root / NOISE_FREE_DEPTH_DIR
+        return d if d.is_dir() else None
+
     def _noise_free_depth(self, raw_index: int) -> np.ndarray | None:
-        if not hasattr(self, "_clean_dir"):
-            d = self.root / NOISE_FREE_DEPTH_DIR
-            self._clean_dir = d if d.is_dir() else None
-        if self._clean_dir is None:
+        if self._noise_free_dir is None:
             return None
-        path = self._clean_dir / self.depth_files[raw_index].name
+        path = self._noise_free_dir / self.depth_files[raw_index].name
         return read_depth(path, self._cam.depth_scale) if path.is_file() else None
 
     def _load(self, raw_index: int) -> tuple[np.ndarray, np.ndarray, str]:
