@@ -420,10 +420,17 @@ class MappingConfig(_Section):
     exposure_closed_form: bool = True
     """Solve each keyframe's exposure instead of learning it: every step first sets its keyframe's exposure to the
     per-channel least-squares affine map from the (vignetted) render to the image over the pixels the map covers,
-    and the run ends with one such fit per keyframe from the final map. The first keyframe's exposure stays the
-    identity (it fixes the map's colours, which gaussians.ply then holds as that keyframe saw them). Adam
+    and the run ends with one such fit per keyframe from the final map. ``exposure_gauge`` fixes the map's colours,
+    which gaussians.ply holds. Adam
     (``lr_exposure``) moves an exposure only on its own keyframe's steps, ~lr each: too slow to converge, and
     faster rates destabilise the map (fr3/cabinet: 23.97 dB with Adam at 0.002, 21.77 at 0.01, 24.36 solved)."""
+    exposure_gauge: Literal["first", "mean"] = "mean"
+    """What fixes the map's colours under solved exposures (``exposure_closed_form``; any affine map of the colours
+    that every exposure undoes renders alike): ``first``, the first keyframe's exposure stays the identity; ``mean``,
+    every keyframe's exposure is solved and after each solve all of them are shifted to a mean log gain and a mean
+    offset of zero, so every keyframe's step pulls the map towards the keyframes' average brightness. With ``first``
+    the map drifted away from the first keyframe, the only one to hold it (7-Scenes kitchen: the first three
+    keyframes share one exposure, yet the first one scored 25.3 dB against 26.9 for the next two)."""
     lr_features: float = 0.0075
     """Adam step of anchor features."""
     lr_offsets: float = 0.01

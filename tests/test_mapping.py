@@ -106,17 +106,18 @@ def test_vignetting_is_learned_into_the_camera_not_the_map(sequence):
     assert float(m2.vignette.detach().abs().sum()) == 0.0
 
 
-def test_a_keyframes_exposure_is_solved_not_learned(sequence):
+@pytest.mark.parametrize("gauge", ["mean", "first"])
+def test_a_keyframes_exposure_is_solved_not_learned(sequence, gauge):
     """A keyframe recorded darker and with an offset (0.7 x + 0.08): its solved exposure takes that change
-    relative to the first keyframe's (the identity, which fixes the map's colours), and fits its image better than
-    Adam's few small steps; the fit itself is the least-squares affine map from the vignetted render to the image,
-    exactly."""
+    relative to the first keyframe's, and fits its image better than Adam's few small steps; the gauge holds (the
+    first keyframe's exposure the identity, or all exposures' mean zero); the fit itself is the least-squares
+    affine map from the vignetted render to the image, exactly."""
     ds, gt = sequence, sequence.gt_poses
     a_true, b_true = 0.7, 0.08
     results = {}
     for solved in (True, False):
         poses = {}
-        m = _mapper(ds, poses, exposure_closed_form=solved)
+        m = _mapper(ds, poses, exposure_closed_form=solved, exposure_gauge=gauge)
         for kf, fi in enumerate((0, 12)):
             f = ds[fi]
             poses[kf] = gt[fi]
@@ -124,9 +125,14 @@ def test_a_keyframes_exposure_is_solved_not_learned(sequence):
             m.add_keyframe(kf, fi, rgb, f.depth)
             m.train(40, focus=kf)
         m.train(40)
-        if solved:
+        if solved and gauge == "first":
             assert m.refit_exposures() == 1  # the first keyframe's exposure stays the identity
             assert float(m.exposure.detach()[m.exposure_row[0]].abs().max()) == 0.0
+        elif solved:
+            # after every step's fit the exposures are recentred: the map holds the keyframes' mean brightness
+            assert float(m.exposure.detach().mean(dim=0).abs().max()) < 1e-6
+            assert m.refit_exposures() == 2  # the final refit is each keyframe's own best fit, not recentred
+            assert float(m.exposure.detach().mean(dim=0).abs().max()) < 0.02
         results[solved] = (psnr(m.render(gt[12], exposure_kf=1).color.numpy(), m.store.get(1).rgb), m)
     (p_solved, m), (p_adam, _) = results[True], results[False]
     assert p_solved > p_adam + 0.5, (p_solved, p_adam)
@@ -142,10 +148,10 @@ def test_a_keyframes_exposure_is_solved_not_learned(sequence):
         vignetted = m._vignetted(out.color, m.intr)  # what the training step hands the fit
     a, b = torch.tensor([0.8, 1.1, 0.9]), torch.tensor([0.05, -0.02, 0.0])
     image = (vignetted * a + b).numpy()
-    assert m._fit_exposure(1, vignetted, out.alpha, image)
+    assert m._fit_exposure(1, vignetted, out.alpha, image, recentre=False)
     torch.testing.assert_close(m.exposure.detach()[m.exposure_row[1]], torch.cat([a.log(), b]), atol=1e-4, rtol=0)
     assert not m._fit_exposure(1, vignetted, torch.zeros_like(out.alpha), image)
-    assert not m._fit_exposure(0, vignetted, out.alpha, image)
+    assert m._fit_exposure(0, vignetted, out.alpha, image) == (gauge == "mean")
 
 
 def _two_keyframes(ds) -> tuple[Mapper, dict]:

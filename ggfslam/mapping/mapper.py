@@ -460,14 +460,17 @@ class Mapper:
 
     @torch.no_grad()
     def _fit_exposure(self, kf_id: int, vignetted: torch.Tensor, alpha: torch.Tensor, rgb: np.ndarray,
-                      min_alpha: float = 0.5) -> bool:
+                      min_alpha: float = 0.5, recentre: bool = True) -> bool:
         """Set keyframe ``kf_id``'s exposure to the per-channel least-squares affine map from a render with the
         camera's vignetting (``_vignetted``, [H, W, 3]; its alpha [H, W]) to its image rgb [H, W, 3], over the
-        pixels the map covers (alpha > min_alpha). False (nothing changed) where too few pixels are covered, and
-        for the first keyframe: were every exposure fitted, the map's colours could drift by any affine map that all
-        exposures undo (a synthetic test drifted to gains 0.8 and offsets -0.2 and biased the vignetting)."""
-        if not self.cfg.exposure or self.exposure_row.get(kf_id, 0) == 0:
-            return False  # the first keyframe's stays the identity: it fixes the colours the map holds
+        pixels the map covers (alpha > min_alpha), then (``exposure_gauge: mean``, with ``recentre``) shift all
+        exposures to a mean of zero. False (nothing changed) where too few pixels are covered, and for the first
+        keyframe with ``exposure_gauge: first``: were every exposure fitted freely, the map's colours could drift by
+        any affine map that all exposures undo (a synthetic test drifted to gains 0.8 and offsets -0.2)."""
+        mean_gauge = self.cfg.exposure_gauge == "mean"
+        if not self.cfg.exposure or kf_id not in self.exposure_row or (
+                self.exposure_row[kf_id] == 0 and not mean_gauge):
+            return False  # with the first keyframe as gauge its exposure stays the identity
         w = (alpha > min_alpha).float()[..., None]  # [H, W, 1]
         n = float(w.sum())
         if n < 100:
@@ -480,6 +483,9 @@ class Mapper:
         var = (wx * x).sum((0, 1)).double() / n - xm * xm
         gain = (cov / var.clamp_min(1e-9)).clamp(0.25, 4.0)  # a flat or dark render cannot set a gain
         self.exposure[self.exposure_row[kf_id]] = torch.cat([gain.log(), ym - gain * xm]).float()
+        if mean_gauge and recentre:
+            # the shift leaves each exposure a little off its fit: that residual is what holds the map's colours
+            self.exposure -= self.exposure.mean(dim=0)
         return True
 
     @torch.no_grad()
@@ -501,7 +507,9 @@ class Mapper:
                 if len(g) == 0:
                     continue
                 out = self._rasterize(g, intr, T_wc, None)
-                n += self._fit_exposure(kf, self._vignetted(out.color, intr), out.alpha, self.store.get(kf, 0).rgb)
+                # no recentring: the final exposures are each keyframe's best fit to the finished map
+                n += self._fit_exposure(kf, self._vignetted(out.color, intr), out.alpha, self.store.get(kf, 0).rgb,
+                                        recentre=False)
         return n
 
     # --- rendering -----------------------------------------------------------------------------------
@@ -594,10 +602,10 @@ class Mapper:
     def reference_exposure(self) -> torch.Tensor | None:
         """The brightness of views that have no keyframe of their own (baked Gaussians, renders along new paths):
         with learned exposures their median [6] (log gain, offset; they drift together); None without exposure or
-        with solved ones (relative to the first keyframe's identity: the map's colours are that keyframe's, and an
-        offset baked into Gaussians would be scaled by each pixel's alpha)."""
+        with solved ones (their gauge, ``exposure_gauge``, is the identity: the map holds the keyframes' mean or
+        the first keyframe's colours, and an offset baked into Gaussians would be scaled by each pixel's alpha)."""
         if not self.cfg.exposure or self.cfg.exposure_closed_form or len(self.exposure_row) == 0:
-            return None  # solved exposures are relative to the first keyframe's, whose colours the map holds
+            return None  # solved exposures are relative to the identity, whose colours the map holds
         return self.exposure.detach().median(dim=0).values
 
     @torch.no_grad()
