@@ -52,7 +52,7 @@ PoseSource = Callable[[], dict[int, np.ndarray]]  # keyframe id -> T_wc [4, 4]
 GEOMETRY_WIDTH = 400
 """Widest image anchors are seeded from (see ``Mapper.geo_level``)."""
 REFERENCE_EXPOSURE = -1
-"""``exposure_kf`` of views without a keyframe of their own: the keyframes' median exposure."""
+"""``exposure_kf`` of views without a keyframe of their own: the reference exposure (``reference_exposure``)."""
 
 
 class ViewSink(Protocol):
