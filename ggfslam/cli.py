@@ -82,7 +82,9 @@ def _live_viewer(view: bool, host: str, port: int):
 @app.command()
 @user_errors
 def run(
-    config: Optional[Path] = typer.Argument(None, help="YAML config file (see configs/); optional with --resume."),
+    config: Optional[Path] = typer.Argument(None, help="YAML config file (see configs/), or a recorded sequence's "
+                                            "folder (any layout `dataset.kind: auto` detects) to run with the built-in "
+                                            "defaults; optional with --resume."),
     out: Path = typer.Option(..., "--out", "-o", help="Run directory to create (or to continue with --resume)."),
     set_: list[str] = typer.Option([], "--set", help="Override a config value: --set dataset.stride=2 (repeatable)."),
     overwrite: bool = typer.Option(False, help="Replace an existing run directory made by ggfslam."),
@@ -92,8 +94,9 @@ def run(
     port: int = typer.Option(8080, help="--view: port to serve on (0: any free one)."),
     host: str = typer.Option("127.0.0.1", help="--view: address to bind (default: this machine only)."),
 ):
-    """Run SLAM on a configured sequence and write a run directory."""
-    from ggfslam.config import load_config
+    """Run SLAM on a configured sequence (or a sequence's folder, with the built-in defaults) and write a run
+    directory."""
+    from ggfslam.config import folder_config, load_config
     from ggfslam.rundir import CONFIG_FILE, require_run_dir
 
     if config is None:
@@ -102,7 +105,8 @@ def run(
         config = require_run_dir(out) / CONFIG_FILE
     if resume and overwrite:
         raise typer.BadParameter("--resume and --overwrite exclude each other")
-    cfg = load_config(config, set_)  # before the heavy imports: a bad config fails in a blink
+    # before the heavy imports: a bad config fails in a blink
+    cfg = folder_config(config, set_) if config.is_dir() else load_config(config, set_)
     from ggfslam import slam
 
     with _live_viewer(view, host, port) as viewer:

@@ -893,6 +893,16 @@ def load_config(path: str | Path, overrides: list[str] | None = None, defaults: 
     return config_from_dict(data, str(path))
 
 
+def folder_config(folder: str | Path, overrides: list[str] | None = None) -> Config:
+    """The built-in defaults run on a recorded sequence ``folder`` (layout detected, ``dataset.kind: auto``; the run
+    is named after the folder), with ``--set`` overrides applied and validated."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise ConfigError(f"{folder}: not a folder")
+    base = {"name": folder.resolve().name or "run", "dataset": {"path": str(folder.resolve()), "kind": "auto"}}
+    return config_from_dict(apply_overrides(base, overrides or []), f"{folder} (built-in defaults)")
+
+
 # settings of how a run is executed, not of what it computes: a run may be resumed or reused under other values
 EXECUTION_KEYS = ("runtime.num_threads", "runtime.progress")
 

@@ -186,13 +186,33 @@ def test_synth_command_writes_tum_layout(cache, tmp_path):
     assert res.exit_code == 2 and "--overwrite" in res.output
 
 
+def test_run_on_a_sequence_folder_uses_the_built_in_defaults(cache, tmp_path):
+    seq = tmp_path / "my_sensor_take"
+    res = runner.invoke(app, ["synth", str(seq), "--frames", "12", "--width", "320", "--height", "240"])
+    assert res.exit_code == 0, res.output
+    out = tmp_path / "run"
+    res = runner.invoke(app, ["run", str(seq), "--out", str(out), "--no-progress", "--set", "mapping.enabled=false"])
+    assert res.exit_code == 0, res.output
+    from ggfslam.config import Config, load_config
+
+    saved = load_config(out / "config.yaml")  # the resolved config: the defaults, the folder, the override
+    assert saved.name == "my_sensor_take"
+    assert Path(saved.dataset.path) == seq.resolve() and saved.dataset.kind == "auto"
+    assert saved.mapping.enabled is False
+    assert saved.tracking == Config.model_validate({"dataset": {"path": "x"}}).tracking
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["trajectory"]["ate_pairs"] == 12  # the folder's ground truth was found and every frame scored
+    assert metrics["trajectory"]["ate_rmse_cm"] < 3.0
+
+
 def _cli(*args, env=None):
     """Run the real ``ggfslam`` entry point in a subprocess (to see exactly what a user sees)."""
     return subprocess.run([sys.executable, "-m", "ggfslam.cli", *args], capture_output=True, text=True,
                           env={**os.environ, **(env or {})}, timeout=120)
 
 
-@pytest.mark.parametrize("case", ["missing_config", "unknown_key", "missing_dataset", "bad_depth", "not_a_run"])
+@pytest.mark.parametrize("case", ["missing_config", "unknown_key", "missing_dataset", "bad_depth", "not_a_run",
+                                  "unknown_folder", "folder_unknown_key"])
 def test_bad_input_is_one_line_without_traceback(case, tmp_path):
     cfg = tmp_path / "c.yaml"
     args = ["run", str(cfg), "--out", str(tmp_path / "out"), "--no-progress"]
@@ -218,6 +238,15 @@ def test_bad_input_is_one_line_without_traceback(case, tmp_path):
         cfg.write_text(f"dataset:\n  kind: tum\n  path: {seq}\n"
                        "  camera: {fx: 10, fy: 10, cx: 4, cy: 4, width: 8, height: 8}\n")
         needle = "16-bit"
+    elif case == "unknown_folder":  # a folder instead of a config: its layout must be one the readers know
+        (tmp_path / "photos").mkdir()
+        args[1] = str(tmp_path / "photos")
+        needle = "cannot tell the dataset format"
+    elif case == "folder_unknown_key":
+        (tmp_path / "photos").mkdir()
+        args[1] = str(tmp_path / "photos")
+        args += ["--set", "dataset.strid=2"]
+        needle = "unknown key 'dataset.strid'"
     else:
         args = ["eval", str(tmp_path)]
         needle = "not a ggfslam run directory"

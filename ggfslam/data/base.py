@@ -71,6 +71,10 @@ class RGBDDataset(ABC):
     def _load(self, raw_index: int) -> tuple[np.ndarray, np.ndarray, str]:
         """Colour [H, W, 3] float32, depth [H, W] float32 metres, and the colour file name of one raw frame."""
 
+    def _depth_name(self, raw_index: int) -> str | None:
+        """The depth file of one raw frame, for error messages (None where depth is not read from its own file)."""
+        return None
+
     # --- public API -----------------------------------------------------------------------------
     def set_depth_registration(self, depth_intrinsics: tuple[float, float, float, float],
                                T_color_depth: np.ndarray, ground_truth_of_depth: bool = False) -> None:
@@ -148,7 +152,7 @@ class RGBDDataset(ABC):
         raw = int(self.indices[i])
         rgb, depth, name = self._load(raw)
         raw_cam = self._raw_camera()
-        check_frame_shapes(name, rgb, depth, raw_cam)
+        check_frame_shapes(name, rgb, depth, raw_cam, self._depth_name(raw))
         cam, und = self._pinhole()
         if und is not None:
             rgb = und.rgb(rgb)
@@ -193,14 +197,17 @@ class RGBDDataset(ABC):
         return f"{type(self).__name__}({self.root}, {len(self)} frames, {cam.width}x{cam.height})"
 
 
-def check_frame_shapes(name: str, rgb: np.ndarray, depth: np.ndarray, camera: Camera) -> None:
-    """Raise DatasetError (naming ``name``) unless colour [H, W, 3] has the camera's size and depth [H, W] colour's."""
+def check_frame_shapes(name: str, rgb: np.ndarray, depth: np.ndarray, camera: Camera,
+                       depth_name: str | None = None) -> None:
+    """Raise DatasetError unless colour [H, W, 3] (file ``name``) has the camera's size and depth [H, W] (file
+    ``depth_name``, named in its error when given) colour's."""
     if rgb.shape[:2] != (camera.height, camera.width):
         raise DatasetError(name, f"colour image is {rgb.shape[1]}x{rgb.shape[0]}, expected "
                                  f"{camera.width}x{camera.height} like the rest of the sequence")
     if depth.shape != rgb.shape[:2]:
-        raise DatasetError(name, f"depth image is {depth.shape[1]}x{depth.shape[0]} but colour is "
-                                 f"{rgb.shape[1]}x{rgb.shape[0]}")
+        colour = f"its colour image {name}" if depth_name else "colour"
+        raise DatasetError(depth_name or name, f"depth image is {depth.shape[1]}x{depth.shape[0]} but {colour} is "
+                                               f"{rgb.shape[1]}x{rgb.shape[0]}")
 
 
 class ImageFileDataset(RGBDDataset):
@@ -245,3 +252,6 @@ class ImageFileDataset(RGBDDataset):
         rgb = read_rgb(rgb_path)  # [H, W, 3]
         depth = read_depth(self.depth_files[raw_index], self._cam.depth_scale)  # [H, W] metres
         return rgb, depth, str(rgb_path)
+
+    def _depth_name(self, raw_index: int) -> str | None:
+        return str(self.depth_files[raw_index])

@@ -102,7 +102,7 @@ class FolderSource(LiveSource):
                 self.sequence.add_stamp(i / self.fps, (rgb_path, depth_path))
                 try:
                     rgb, depth = read_rgb(rgb_path), read_depth(depth_path, self.camera.depth_scale)
-                    check_frame_shapes(str(rgb_path), rgb, depth, self.camera)
+                    check_frame_shapes(str(rgb_path), rgb, depth, self.camera, str(depth_path))
                     frame, error = Frame(i, i / self.fps, rgb, depth, name=str(rgb_path)), None
                 except DatasetError as e:
                     frame, error = None, e
