@@ -173,10 +173,12 @@ def head_backward(raw_o, raw_c, raw_cov, anchors, offsets, log_scale, base_color
                   radius, eps, snap, cam, sh_deg, start, g_means, g_quats, g_scales, g_opac, g_col, gr_o, gr_c,
                   gr_cov, g_offsets, g_log_scale, g_base):
     """Gradients of the raw MLP outputs, offsets, log scales and base colours from those of the kept children
-    (the outputs are zero-initialised by the caller; children that were not kept get zero). The SH colour's
-    direction is differentiated too (through the child's mean, as 3DGS does)."""
+    (every element of the outputs is written: children that were not kept get zero, so the caller need not clear
+    them, which was ~2.5 ms of a step at 100k children). The SH colour's direction is differentiated too (through
+    the child's mean, as 3DGS does)."""
     m_total, k = raw_o.shape
     nb = (sh_deg + 1) * (sh_deg + 1)
+    nrc = gr_c.shape[2]
     for ch in prange((m_total + CHUNK - 1) // CHUNK):
         Y = np.empty(16)
         GY = np.zeros(16)
@@ -187,7 +189,17 @@ def head_backward(raw_o, raw_c, raw_cov, anchors, offsets, log_scale, base_color
             gl0 = gl1 = gl2 = 0.0
             for j in range(k):
                 if not raw_o[m, j] > 0.0:
+                    gr_o[m, j] = 0.0
+                    for c in range(nrc):
+                        gr_c[m, j, c] = 0.0
+                    for c in range(7):
+                        gr_cov[m, j, c] = 0.0
+                    for c in range(3):
+                        g_offsets[m, j, c] = 0.0
+                        g_base[m, j, c] = 0.0
                     continue
+                for c in range(3 * nb, nrc):  # coefficients beyond the degree in use
+                    gr_c[m, j, c] = 0.0
                 o = np.tanh(raw_o[m, j])
                 gr_o[m, j] = g_opac[row] * (1.0 - o * o)
                 dx = dy = dz = 0.0
@@ -298,8 +310,8 @@ class _ChildHead(torch.autograd.Function):
 
         gm, gq, gs = z(g_means, (g, 3)), z(g_quats, (g, 4)), z(g_scales, (g, 3))
         go, gc = z(g_opac, (g,)), z(g_col, (g, 3))
-        gr_o, gr_c, gr_cov = np.zeros_like(ro), np.zeros_like(rc), np.zeros_like(rv)
-        g_off, g_ls, g_bc = np.zeros_like(off), np.empty_like(ls), np.zeros_like(bc)
+        gr_o, gr_c, gr_cov = np.empty_like(ro), np.empty_like(rc), np.empty_like(rv)  # the kernel writes all
+        g_off, g_ls, g_bc = np.empty_like(off), np.empty_like(ls), np.empty_like(bc)
         head_backward(ro, rc, rv, an, off, ls, bc, *surf, cam, sh_deg, start, gm, gq, gs, go, gc, gr_o, gr_c, gr_cov,
                       g_off, g_ls, g_bc)
         return (torch.from_numpy(gr_o), torch.from_numpy(gr_c).reshape(c_shape), torch.from_numpy(gr_cov),
