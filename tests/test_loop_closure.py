@@ -176,14 +176,16 @@ def test_covisible_keyframes_are_never_loop_candidates(loop_seq, loop_kfs):
     assert det.add_keyframe(29, last.uv, last.desc, last.pts, last.T_wc) is None
 
 
-def test_temporal_consistency_only_delays(loop_seq, loop_kfs, loop_run):
-    _, plain = loop_run
-    found = {c: run(LoopDetector(loop_seq.camera, cfg=LoopClosureConfig(consistency=c)), loop_kfs, last_three)
-             for c in (2, 4)}
-    assert set(found[4]) <= set(found[2]) <= set(plain)
+def test_temporal_consistency_only_delays(loop_seq, loop_kfs):
+    # at the default threshold the return lane's candidate regions are hit by every keyframe from the 14th on, so
+    # consistency changes nothing there; at the median covisible score itself they come and go, and it shows
+    found = {c: run(LoopDetector(loop_seq.camera, cfg=LoopClosureConfig(consistency=c, min_score_ratio=1.0)),
+                    loop_kfs, last_three) for c in (1, 2, 4)}
+    assert set(found[4]) <= set(found[2]) <= set(found[1])
     # a keyframe only checks a candidate region that the previous c - 1 keyframes hit as well
-    assert min(found[4]) >= min(plain) + 2
-    assert len(found[4]) >= 2
+    assert min(found[2]) >= min(found[1]) + 1  # measured: 21, 22, 24
+    assert min(found[4]) >= min(found[1]) + 3
+    assert found[4]
 
 
 def test_verification_with_noisy_depth_and_colour():

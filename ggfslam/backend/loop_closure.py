@@ -2,7 +2,7 @@
 
 For each new keyframe (ORB-SLAM-like): query the keyframe database, leaving out the keyframe's covisible
 neighbours and the most recent keyframes; keep candidates whose score reaches a fraction of the score of
-the best covisible neighbour (how similar "the same place" looks right now); optionally require the
+the median covisible neighbour (how similar "the same place" looks right now); optionally require the
 candidate region to be found by several consecutive keyframes (temporal consistency); then verify each
 candidate geometrically: ORB matching (Hamming, ratio test, one-to-one), RANSAC PnP from the candidate's
 3D points to the query's pixels, then a Gauss-Newton refinement on the inliers with reprojection and, where
@@ -35,7 +35,10 @@ class LoopClosureConfig:
     min_score: float = 0.05
     """Absolute floor on the BoW L1 score of a candidate (scores are ~0.1 between unrelated views)."""
     min_score_ratio: float = 0.75
-    """A candidate must score >= this fraction of the best score among the query's covisible neighbours."""
+    """A candidate must score >= this fraction of the median score among the query's covisible neighbours (how
+    similar "the same place" looks right now). The median, not the best: with keyframes close together the best
+    neighbour is a near-duplicate of the query that no revisit matches (a lap of the synthetic room with keyframes
+    10 cm apart found no loop against the best, the correct one against the median; ORB-SLAM takes the lowest)."""
     top_k: int = 5
     """At most this many BoW candidates (best first) are verified geometrically per keyframe."""
     exclude_recent: int = 10
@@ -474,8 +477,8 @@ class LoopDetector:
             return []
         recent = list(self.keyframes)[-cfg.exclude_recent:] if cfg.exclude_recent > 0 else []
         exclude = covisible | set(recent) | {kf_id}
-        ref = self.database.score(bow, covisible)
-        threshold = max(cfg.min_score, cfg.min_score_ratio * max(ref.values(), default=0.0))
+        ref = list(self.database.score(bow, covisible).values())
+        threshold = max(cfg.min_score, cfg.min_score_ratio * (float(np.median(ref)) if ref else 0.0))
         return self.database.query(bow, top_k=cfg.top_k, exclude=exclude, min_score=threshold)
 
     def _consistent(self, candidates: list[tuple[int, float]]) -> list[tuple[int, float]]:
