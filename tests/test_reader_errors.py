@@ -183,7 +183,7 @@ def test_camera_yaml_not_a_mapping(make_tum):
 
 def test_tum_no_intrinsics(make_tum):
     root = make_tum(camera_yaml=False, name="office")
-    raises(lambda: TUMDataset(root), "office", "no intrinsics", "camera.yaml")
+    raises(lambda: TUMDataset(root), "office", "no intrinsics", "dataset.camera", "camera.yaml")
 
 
 # --- Replica ---------------------------------------------------------------------------------------------

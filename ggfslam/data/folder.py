@@ -29,8 +29,8 @@ def folder_camera(root: Path, camera: Camera | None) -> Camera:
         return camera
     yaml_path = root / CAMERA_FILE
     if not yaml_path.is_file():
-        raise DatasetError(yaml_path, "no intrinsics: pass a Camera (with depth_scale) or write this file (or set "
-                                      "dataset.camera, with its depth_scale: raw depth units per metre)")
+        raise DatasetError(yaml_path, "no intrinsics: write this file or set dataset.camera (fx, fy, cx, cy, width, "
+                                      "height, and depth_scale: raw depth units per metre)")
     return read_camera_yaml(yaml_path)
 
 

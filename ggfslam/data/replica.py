@@ -23,7 +23,7 @@ def read_cam_params(path: str | Path) -> Camera:
     """Intrinsics from a NICE-SLAM ``cam_params.json`` (``{"camera": {w, h, fx, fy, cx, cy, scale}}``)."""
     path = Path(path)
     if not path.is_file():
-        raise DatasetError(path, "camera file not found (pass a Camera to use other intrinsics)")
+        raise DatasetError(path, "camera file not found (or set dataset.camera to use other intrinsics)")
     try:
         data = json.loads(path.read_text())
     except json.JSONDecodeError as e:

@@ -126,7 +126,8 @@ class ScanNetDataset(ImageFileDataset):
             h, w = read_rgb(self.rgb_files[0]).shape[:2]
             cam = Camera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h, SCANNET_DEPTH_SCALE)
             return cam.resized(depth_w, depth_h)
-        raise DatasetError(depth_file, "intrinsics not found (nor intrinsic_color.txt): pass a Camera")
+        raise DatasetError(depth_file, "intrinsics not found (nor intrinsic_color.txt): set dataset.camera (fx, fy, "
+                                       "cx, cy, width, height, depth_scale)")
 
     def _load(self, raw_index: int) -> tuple[np.ndarray, np.ndarray, str]:
         cam = self._raw_camera()

@@ -182,5 +182,6 @@ class TUMDataset(ImageFileDataset):
         cam = tum_default_camera(self.root.name)
         if cam is not None:
             return cam, "TUM published intrinsics for the folder name"
-        raise DatasetError(self.root, f"no intrinsics: pass a Camera, write {CAMERA_FILE} in the folder, or name "
-                                      f"the folder after its TUM sensor (freiburg1/2/3 or fr1/2/3)")
+        raise DatasetError(self.root, f"no intrinsics: set dataset.camera (fx, fy, cx, cy, width, height), write "
+                                      f"{CAMERA_FILE} in the folder, or name the folder after its TUM sensor "
+                                      f"(freiburg1/2/3 or fr1/2/3)")
