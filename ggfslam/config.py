@@ -424,7 +424,8 @@ class MappingConfig(_Section):
     per-channel least-squares affine map from the (vignetted) render to the image over the pixels the map covers,
     and the run ends with one such fit per keyframe from the final map. ``exposure_gauge`` fixes the map's colours,
     which gaussians.ply holds. Adam (``lr_exposure``) moves an exposure only on its own keyframe's steps, ~lr each:
-    too slow to converge, and faster rates destabilise the map (fr3/cabinet: 23.97 dB with Adam at 0.002, 21.77 at 0.01, 24.36 solved)."""
+    too slow to converge, and faster rates destabilise the map (fr3/cabinet: 23.97 dB with Adam at 0.002, 21.77 at
+    0.01, 24.36 solved)."""
     exposure_gauge: Literal["first", "mean"] = "mean"
     """What fixes the map's colours under solved exposures (``exposure_closed_form``; any affine map of the colours
     that every exposure undoes renders alike): ``first``, the first keyframe's exposure stays the identity; ``mean``,
@@ -901,7 +902,8 @@ def folder_config(folder: str | Path, overrides: list[str] | None = None) -> Con
     folder = Path(folder)
     if not folder.is_dir():
         raise ConfigError(f"{folder}: not a folder")
-    base = {"name": folder.resolve().name or "run", "dataset": {"path": str(folder.resolve()), "kind": "auto"}}
+    root = folder.resolve()
+    base = {"name": root.name or "run", "dataset": {"path": str(root), "kind": "auto"}}
     return config_from_dict(apply_overrides(base, overrides or []), f"{folder} (built-in defaults)")
 
 

@@ -134,7 +134,8 @@ def test_tum_eight_bit_depth(make_tum):
 def test_tum_colour_depth_size_mismatch(make_tum):
     root = make_tum()
     cv2.imwrite(str(root / "depth" / "100.000000.png"), np.full((3, 4), 5000, np.uint16))
-    raises(lambda: TUMDataset(root)[0], "depth/100.000000.png", "depth image is 4x3", "colour image", "rgb/100.000000.png")
+    raises(lambda: TUMDataset(root)[0], "depth/100.000000.png", "depth image is 4x3", "colour image",
+           "rgb/100.000000.png")
 
 
 def test_tum_image_size_differs_from_camera(make_tum):
