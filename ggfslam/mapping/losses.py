@@ -35,3 +35,20 @@ def normal_loss(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
     """Mean (1 - pred . gt) over pixels where both normal maps [H, W, 3] are defined (non-zero)."""
     valid = ((gt.abs().sum(-1) > 0) & (pred.detach().abs().sum(-1) > 0)).to(pred.dtype)
     return ((1 - (pred * gt).sum(-1)) * valid).sum() / valid.sum().clamp_min(1)
+
+
+def depth_spread_loss(depth_raw: torch.Tensor, depth_sq: torch.Tensor, alpha: torch.Tensor,
+                      valid: torch.Tensor | None = None, min_alpha: float = 0.01) -> torch.Tensor:
+    """Mean, over the pixels ``valid`` [H, W] bool (default all) with alpha > min_alpha, of the blending weights'
+    relative variance of the Gaussians' view depths along each ray, ``alpha * sum w z^2 / (sum w z)^2 - 1``, from
+    depth_raw = sum w z, depth_sq = sum w z^2 and alpha = sum w, all [H, W] (2DGS's depth distortion, squared and
+    scale-free). Scaling every weight of a pixel leaves it unchanged, so the loss never pays the map to turn
+    transparent; ``valid`` should not depend on the render either (the sensor's depth, not the render's alpha)."""
+    a = alpha.double()
+    ok = (a.detach() > min_alpha) & (depth_raw.detach() > 0)
+    if valid is not None:
+        ok &= valid
+    # float64: the ratio is 1 + O(1e-5) on a surface, float32 would cancel it to noise
+    ratio = a * depth_sq.double() / torch.where(ok, depth_raw.double(), torch.ones_like(a)) ** 2
+    spread = torch.where(ok, ratio - 1, torch.zeros_like(a))
+    return (spread.sum() / ok.sum().clamp_min(1)).to(alpha.dtype)

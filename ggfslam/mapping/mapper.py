@@ -43,7 +43,7 @@ from ggfslam.geometry.se3 import invert, rotation_angle
 from ggfslam.ggf import GeometricGaussianField, planarity_colors
 from ggfslam.mapping.keyframe_store import KeyframeStore, scaled_intrinsics
 from ggfslam.mapping.loss_kernels import normal_loss_from_depth
-from ggfslam.mapping.losses import depth_loss, photometric_loss
+from ggfslam.mapping.losses import depth_loss, depth_spread_loss, photometric_loss
 from ggfslam.render.api import rasterize
 from ggfslam.render.plane_depth import PLANE_CHANNELS, pixel_rays, plane_channels, plane_depth
 from ggfslam.render.types import Intrinsics, RenderOutput, RenderSettings
@@ -373,7 +373,8 @@ class Mapper:
                                       and self.view_sink.wants(kf_id, self.iteration)) else None
             p2d = self._planar_channel(g) if sink is not None else None
             l_morph = self.ggf.morph(g) if self.ggf is not None and self.ggf_cfg.lambda_morph > 0 else torch.zeros(())
-            out = self._rasterize(g, intr, T_wc, None if p2d is None else p2d.detach())
+            spread = c.lambda_depth_spread > 0
+            out, moments = self._rasterize(g, intr, T_wc, None if p2d is None else p2d.detach(), spread)
             vignetted = self._vignetted(out.color, intr)  # [H, W, 3]
             if c.exposure_closed_form:
                 self._fit_exposure(kf_id, vignetted.detach(), out.alpha.detach(), rgb)
@@ -387,6 +388,10 @@ class Mapper:
             if c.lambda_normal > 0:
                 l_normal = normal_loss_from_depth(out.depth, torch.from_numpy(np.ascontiguousarray(normals)), intr)
                 loss = loss + c.lambda_normal * l_normal
+            l_spread = torch.zeros(())
+            if spread:
+                l_spread = depth_spread_loss(moments[..., 0], moments[..., 1], out.alpha, gt_depth > 0)
+                loss = loss + c.lambda_depth_spread * l_spread
             if c.lambda_scale > 0:
                 vol = g.scales.prod(dim=1).mean() / self.map.voxel_size ** 3
                 loss = loss + c.lambda_scale * vol
@@ -407,30 +412,45 @@ class Mapper:
                 self.pruned += self.density.prune(self.opt)
             self.train_seconds += time.perf_counter() - t0
             self.last_losses = {"loss": loss.item(), "photo": l_photo.item(), "depth": l_depth.item(),
-                                "normal": l_normal.item(), "morph": float(l_morph.detach())}
+                                "normal": l_normal.item(), "morph": float(l_morph.detach()),
+                                "spread": l_spread.item()}
             if level == self.error_level and crop is None:  # comparable across keyframes: whole images, one size
                 self.kf_loss[kf_id] = self.last_losses["photo"]
             return self.last_losses
 
-    def _rasterize(self, g: DecodedGaussians, intr: Intrinsics, T_wc: np.ndarray, p2d: torch.Tensor | None
-                   ) -> RenderOutput:
-        """Render children g at camera-to-world T_wc [4, 4], with the planar-weight channel p2d [G, 1] if given;
-        with ``ggf.plane_depth`` surfels' depth is where each pixel's ray meets their plane."""
+    def _rasterize(self, g: DecodedGaussians, intr: Intrinsics, T_wc: np.ndarray, p2d: torch.Tensor | None,
+                   depth_moments: bool = False) -> tuple[RenderOutput, torch.Tensor | None]:
+        """Render children g at camera-to-world T_wc [4, 4], with the planar-weight channel p2d [G, 1] if given (in
+        ``extras``); with ``ggf.plane_depth`` surfels' depth is where each pixel's ray meets their plane. With
+        ``depth_moments`` also returns (sum w z, sum w z^2) [H, W, 2] of the children's view depths z, held constant
+        (their gradient reaches the blending weights only; else None)."""
         T_cw = torch.from_numpy(invert(T_wc)).float()
-        if self.ggf is None or not (self.ggf_cfg.amr and self.ggf_cfg.plane_depth):
-            return rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, intr, T_cw, extras=p2d,
-                             settings=self.settings)
-        R = T_cw[:3, :3]
-        mu_c = g.means @ R.T + T_cw[:3, 3]  # [G, 3]
-        normals_c = self.ggf.geom.normals.index_select(0, g.anchor_index) @ R.T  # [G, 3]
-        planes = plane_channels(mu_c, normals_c, self.ggf.planar().index_select(0, g.anchor_index))
-        extras = planes if p2d is None else torch.cat([planes, p2d], 1)
+        planes = self.ggf is not None and self.ggf_cfg.amr and self.ggf_cfg.plane_depth
+        channels: list[torch.Tensor] = []  # each [G, c], rendered as extra channels in this order
+        if planes or depth_moments:
+            R = T_cw[:3, :3]
+            mu_c = g.means @ R.T + T_cw[:3, 3]  # [G, 3]
+        if planes:
+            normals_c = self.ggf.geom.normals.index_select(0, g.anchor_index) @ R.T  # [G, 3]
+            channels.append(plane_channels(mu_c, normals_c, self.ggf.planar().index_select(0, g.anchor_index)))
+        if depth_moments:
+            z = mu_c[:, 2:3].detach()  # [G, 1]: held, so the moments move only with the blending weights
+            channels.append(torch.cat([z, z * z], 1))
+        if p2d is not None:
+            channels.append(p2d)
+        extras = None if not channels else channels[0] if len(channels) == 1 else torch.cat(channels, 1)
         out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, intr, T_cw, extras=extras,
                         settings=self.settings)
-        out.depth = plane_depth(out.extras[..., :PLANE_CHANNELS], out.alpha, out.depth, intr,
-                                self.settings.depth_min_alpha)
-        out.extras = out.extras[..., PLANE_CHANNELS:] if p2d is not None else None
-        return out
+        rest = out.extras
+        if planes:
+            out.depth = plane_depth(rest[..., :PLANE_CHANNELS], out.alpha, out.depth, intr,
+                                    self.settings.depth_min_alpha)
+            rest = rest[..., PLANE_CHANNELS:]
+        moments = None
+        if depth_moments:
+            moments, rest = rest[..., :2], rest[..., 2:]
+        out.extras = rest if p2d is not None else None
+        return out, moments
 
     def vignetting_gain(self, intr: Intrinsics) -> torch.Tensor:
         """The camera's learned vignetting gain [H, W] at intrinsics intr (1 at the optical axis)."""
@@ -506,7 +526,7 @@ class Mapper:
                 g, _ = self._decode_view(T_wc, intr)
                 if len(g) == 0:
                     continue
-                out = self._rasterize(g, intr, T_wc, None)
+                out, _ = self._rasterize(g, intr, T_wc, None)
                 # no recentring: the final exposures are each keyframe's best fit to the finished map
                 n += self._fit_exposure(kf, self._vignetted(out.color, intr), out.alpha, self.store.get(kf, 0).rgb,
                                         recentre=False)
@@ -523,7 +543,7 @@ class Mapper:
         with self.lock:
             g, _ = self._decode_view(T_wc, intr, without_kf)
             p2d = self._planar_channel(g) if planar else None
-            out = self._rasterize(g, intr, T_wc, p2d)
+            out, _ = self._rasterize(g, intr, T_wc, p2d)
             if exposure_kf is not None:
                 out.color = self.sensor_image(out.color, intr, exposure_kf)
             out.color = out.color.clamp(0, 1)
