@@ -417,7 +417,12 @@ def test_mapper_with_plane_depth_renders_surfel_planes(sequence):
         ref = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, m.intr,
                         torch.from_numpy(np.linalg.inv(T_wc)).float(), extras=planes.float(), settings=m.settings)
         expect = plane_depth(ref.extras, ref.alpha, ref.depth, m.intr, m.settings.depth_min_alpha)
+        # with the depth-spread moments rendered beside the planes and P_2D, each comes back in its own place
+        both, moments = m._rasterize(g, m.intr, T_wc, m._planar_channel(g), depth_moments=True)
     assert torch.allclose(out.depth, expect, atol=1e-4)
+    assert torch.allclose(both.depth, out.depth, atol=1e-5) and both.extras.shape[-1] == 1
+    assert torch.allclose(both.extras, out.extras, atol=1e-5)
+    assert torch.allclose(moments[..., 0], both.depth_raw, rtol=1e-4, atol=1e-5)
     assert float((out.depth - ref.depth).abs().max()) > 1e-3  # tilted surfels: not the centres' depth
 
 
