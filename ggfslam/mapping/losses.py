@@ -42,8 +42,8 @@ def depth_spread_loss(depth_raw: torch.Tensor, depth_sq: torch.Tensor, alpha: to
     """Mean, over the pixels ``valid`` [H, W] bool (default all) with alpha > min_alpha, of the blending weights'
     relative variance of the Gaussians' view depths along each ray, ``alpha * sum w z^2 / (sum w z)^2 - 1``, from
     depth_raw = sum w z, depth_sq = sum w z^2 and alpha = sum w, all [H, W] (2DGS's depth distortion, squared and
-    scale-free). Scaling every weight of a pixel leaves it unchanged, so the loss never pays the map to turn
-    transparent; ``valid`` should not depend on the render either (the sensor's depth, not the render's alpha)."""
+    scale-free). Scaling every weight of a pixel leaves it unchanged, so turning transparent does not lower it (short
+    of alpha <= min_alpha); ``valid`` should not depend on the render either (the sensor's depth, not its alpha)."""
     a = alpha.double()
     ok = (a.detach() > min_alpha) & (depth_raw.detach() > 0)
     if valid is not None:

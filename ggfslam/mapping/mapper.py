@@ -8,8 +8,8 @@
   adjustment or a loop closure moved a keyframe by more than ``pose_update_threshold``, the anchors it
   created move rigidly with it, so corrections move the map instead of leaving a ghost copy.
 - Loss (METHOD.md §5): ``0.8 L1 + 0.2 (1 - SSIM) + 0.5 L_depth + 0.05 L_normal`` plus Scaffold-GS's volume
-  regulariser, plus ``0.1 L_morph`` with the Geometric-Gaussian Field; growing and pruning every
-  ``densify_every`` steps.
+  regulariser, plus ``0.1 L_morph`` with the Geometric-Gaussian Field (and, when ``lambda_depth_spread`` > 0, the
+  depth spread along each ray, losses.depth_spread_loss); growing and pruning every ``densify_every`` steps.
 - With ``ggf.enabled`` (ggf/), every keyframe's depth and view are recorded per anchor (``_observe``), AMR
   turns the children of planar anchors into surfels (training, rendering and export alike), AOF trains the
   field's residual net after the Gaussians' step, and ``render`` carries P_2D as the planar-weight channel
