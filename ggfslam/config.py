@@ -505,15 +505,12 @@ class MappingConfig(_Section):
         if not 0 < self.crop <= 1:
             raise ValueError("crop must be in (0, 1]")
         for name in ("iterations_per_keyframe", "iterations_per_frame", "final_iterations", "densify_every",
-                     "densify_from",
-                     "keyframe_cache", "checkpoint_every"):
+                     "densify_from", "keyframe_cache", "checkpoint_every",
+                     "lambda_depth", "lambda_normal", "lambda_depth_spread", "lambda_scale"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0")
         if not 0 <= self.lambda_ssim <= 1:
             raise ValueError("lambda_ssim must be in [0, 1]")
-        for name in ("lambda_depth", "lambda_normal", "lambda_depth_spread", "lambda_scale"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"{name} must be >= 0")
         if not 0 < self.init_opacity < 1:
             raise ValueError("init_opacity must be in (0, 1)")
         if not 0 <= self.sh_degree <= 3:

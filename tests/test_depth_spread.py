@@ -3,13 +3,18 @@ through the renderer against finite differences, and that training with it pulls
 depth."""
 from __future__ import annotations
 
+import tempfile
+
 import numpy as np
 import pytest
 import torch
 
+from ggfslam.config import MappingConfig
+from ggfslam.eval.image import psnr
 from ggfslam.mapping.losses import depth_spread_loss
+from ggfslam.mapping.mapper import Mapper
 from ggfslam.render import rasterize
-from ggfslam.render.types import Intrinsics
+from ggfslam.render.types import Intrinsics, RenderSettings
 
 INTR = Intrinsics(fx=60.0, fy=60.0, cx=32.0, cy=24.0, width=64, height=48)  # principal point on a pixel centre
 
@@ -97,13 +102,6 @@ def test_training_with_the_term_pulls_each_rays_gaussians_onto_one_depth(sequenc
     renders the keyframes with about half the spread (every pixel counted alike; 0.52-0.55 of it over seeds 0-3) and
     a colour cost under 1.5 dB (0.5-0.9 dB over those seeds; 1.2 dB in one unseeded run), the cost that keeps it off
     by default."""
-    import tempfile
-
-    from ggfslam.config import MappingConfig
-    from ggfslam.eval.image import psnr
-    from ggfslam.mapping.mapper import Mapper
-    from ggfslam.render.types import RenderSettings
-
     poses = {kf: sequence.gt_poses[fi] for kf, fi in enumerate((0, 12, 24))}
     results = []
     for weight in (0.0, 10.0):

@@ -438,7 +438,7 @@ class Mapper:
             channels.append(torch.cat([z, z * z], 1))
         if p2d is not None:
             channels.append(p2d)
-        extras = None if not channels else channels[0] if len(channels) == 1 else torch.cat(channels, 1)
+        extras = torch.cat(channels, 1) if channels else None
         out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, intr, T_cw, extras=extras,
                         settings=self.settings)
         rest = out.extras
