@@ -119,7 +119,7 @@ class _RasterizeCPU(torch.autograd.Function):
         kc.project_forward(m_np, q_np, s_np, o_np, R, t, intr.fx, intr.fy, intr.cx, intr.cy, W, H,
                            float(settings.near_plane), float(settings.far_plane), float(settings.eps2d),
                            rec, radii, valid, nworkers)
-        vis, tile_start, pidx, srec, sfeat, pair_start, pair_slot, tile_cost = kc.bin_tiles(valid, rec, c_np, e_np,
+        vis, tile_start, pidx, srec, sfeat, pair_start, slot_pair, tile_cost = kc.bin_tiles(valid, rec, c_np, e_np,
                                                                                             W, H, nworkers)
         bg = np.zeros(C, np.float64)
         bg[:3] = background.detach().to(torch.float64).numpy()
@@ -138,7 +138,7 @@ class _RasterizeCPU(torch.autograd.Function):
         info.depths = rec[:, kc.R_Z]
         info.n_pairs = int(pidx.shape[0])
         ctx.save_for_backward(means, quats, scales, R_cw, t_cw)
-        ctx.np = (vis, tile_start, pidx, srec, sfeat, pair_start, pair_slot, bg, tfinal, last, work_bwd, K, Kp,
+        ctx.np = (vis, tile_start, pidx, srec, sfeat, pair_start, slot_pair, bg, tfinal, last, work_bwd, K, Kp,
                   depth_raw)
         ctx.intr, ctx.settings, ctx.n = intr, settings, n
         alpha = 1.0 - tfinal
@@ -151,7 +151,7 @@ class _RasterizeCPU(torch.autograd.Function):
             raise RuntimeError("the CPU rasterizer's backward ran twice on one render: its pair buffers are freed after "
                                "the first pass (retain_graph=True is not supported); render again for another gradient")
         means, quats, scales, R_cw, t_cw = ctx.saved_tensors
-        (vis, tile_start, pidx, srec, sfeat, pair_start, pair_slot, bg, tfinal, last, work_bwd, K, Kp,
+        (vis, tile_start, pidx, srec, sfeat, pair_start, slot_pair, bg, tfinal, last, work_bwd, K, Kp,
          depth_raw) = ctx.np
         intr, settings, n = ctx.intr, ctx.settings, ctx.n
         W, H = intr.width, intr.height
@@ -166,7 +166,7 @@ class _RasterizeCPU(torch.autograd.Function):
             ge = np.ascontiguousarray(np.pad(ge, ((0, 0), (0, 0), (0, Kp - K))))
         pg = np.empty((pidx.shape[0], kc.N_GEO + C), np.float32)
         nworkers = max(1, numba.get_num_threads())
-        kc.raster_backward(srec, sfeat, pidx, pair_slot, tile_start, kc.tile_order(work_bwd), bg, W, H,
+        kc.raster_backward(srec, sfeat, pidx, tile_start, kc.tile_order(work_bwd), bg, W, H,
                            float(settings.depth_min_alpha), gc, gz, ge, gd, ga, depth_raw, tfinal, last, pg, nworkers)
         g_means = np.zeros((n, 3), np.float32)
         g_quats = np.zeros((n, 4), np.float32)
@@ -181,7 +181,7 @@ class _RasterizeCPU(torch.autograd.Function):
         R = R_cw.detach().to(torch.float64).contiguous().numpy()
         t = t_cw.detach().to(torch.float64).contiguous().numpy()
         kc.project_backward(_np32(means), _np32(quats), _np32(scales), R, t, intr.fx, intr.fy, intr.cx, intr.cy,
-                            W, H, float(settings.eps2d), vis, pair_start, pg, g_means, g_quats, g_scales,
+                            W, H, float(settings.eps2d), vis, pair_start, slot_pair, pg, g_means, g_quats, g_scales,
                             g_opac, g_colors, g_extras, g_m2d, g_pose, nworkers)
         gp = g_pose.sum(axis=0)
         need = ctx.needs_input_grad

@@ -16,9 +16,11 @@ Pipeline (one render)
    through ``pidx`` and prefetch the records of the pairs two steps ahead: the depth-ordered records are
    small (Nv x 64 bytes) and the prefetch hides most cache misses, so this is faster overall than copying a
    64+16-byte record per pair (measured, 100k Gaussians, render + backward: ~8 % faster at 320x240 and
-   640x480; without the prefetch the indirect reads made the rasterizers ~30 % slower). Also: each pair's
-   slot in a Gaussian-major order (the backward writes per-pair gradients there, so summing them needs no
-   atomics and no random reads) and per-tile cost estimates.
+   640x480; without the prefetch the indirect reads made the rasterizers ~30 % slower). Also: the pairs in
+   Gaussian-major order (``slot_pair``: the backward writes per-pair gradients in pair order, and
+   ``project_backward`` sums each Gaussian's through this list, with prefetch; no atomics. Writing them
+   straight into Gaussian-major rows instead scattered ~40-byte writes over the whole array: ~20% of the
+   backward at 320x240) and per-tile cost estimates.
 3. Scheduling: every parallel kernel runs one ``prange`` iteration per worker thread, and the workers pull
    work items (tiles by decreasing estimated cost, rows, or chunks of Gaussians) from an atomic counter
    (``_fetch_add``). numba's OpenMP layer splits a ``prange`` statically; with another busy process on
@@ -108,20 +110,23 @@ def _fetch_add(typingctx, counter, val):
 
 def _prefetch_typer(arr, row, last_column: bool):
     """Signature and codegen of a software prefetch (read, keep in all cache levels) of ``arr[row, 0]`` or, with
-    ``last_column``, ``arr[row, -1]`` (2-D C-contiguous array); None for other argument types."""
-    if not (isinstance(arr, types.Array) and arr.ndim == 2 and isinstance(row, types.Integer)):
+    ``last_column``, ``arr[row, -1]`` (2-D C-contiguous array), or of ``arr[row]`` (1-D); None for other argument
+    types."""
+    if not (isinstance(arr, types.Array) and arr.ndim in (1, 2) and isinstance(row, types.Integer)):
         return None
     sig = types.void(arr, row)
 
     def codegen(context, builder, signature, args):
         arrty = signature.args[0]
         ary = context.make_array(arrty)(context, builder, args[0])
-        if last_column:
-            col = builder.sub(cgutils.unpack_tuple(builder, ary.shape, 2)[1], context.get_constant(types.intp, 1))
-        else:
-            col = context.get_constant(types.intp, 0)
         r = context.cast(builder, args[1], signature.args[1], types.intp)
-        ptr = cgutils.get_item_pointer(context, builder, arrty, ary, [r, col], wraparound=False)
+        if arrty.ndim == 1:
+            idx = [r]
+        elif last_column:
+            idx = [r, builder.sub(cgutils.unpack_tuple(builder, ary.shape, 2)[1], context.get_constant(types.intp, 1))]
+        else:
+            idx = [r, context.get_constant(types.intp, 0)]
+        ptr = cgutils.get_item_pointer(context, builder, arrty, ary, idx, wraparound=False)
         i8p = ir.IntType(8).as_pointer()
         i32 = ir.IntType(32)
         fnty = ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32])
@@ -134,7 +139,7 @@ def _prefetch_typer(arr, row, last_column: bool):
 
 @intrinsic
 def _prefetch(typingctx, arr, row):
-    """Software prefetch of ``arr[row, 0]`` (2-D C-contiguous array)."""
+    """Software prefetch of ``arr[row, 0]`` (2-D C-contiguous array) or ``arr[row]`` (1-D)."""
     return _prefetch_typer(arr, row, last_column=False)
 
 
@@ -360,8 +365,9 @@ def bin_tiles(valid, rec, colors, extras, width, height, nworkers):
       tile_start [ntiles+1] i64: pairs of tile t are tile_start[t]:tile_start[t+1], in depth order;
       pidx [npairs] i32: depth rank of the pair's Gaussian (its row in srec / sfeat);
       srec [Nv, 16] f32: records in depth order; sfeat [Nv, 4+K] f32: their (r, g, b, z, extras);
-      pair_start [Nv+1] i64, pair_slot [npairs] i64: pair k's slot in Gaussian-major order; the slots of
-      compact Gaussian j are pair_start[j]:pair_start[j+1] (the backward writes gradients by slot);
+      pair_start [Nv+1] i64, slot_pair [npairs] i64: the pairs in Gaussian-major order: compact Gaussian j's
+      are slot_pair[pair_start[j]:pair_start[j+1]] (the backward writes its per-pair gradients in pair order,
+      ``project_backward`` sums each Gaussian's through this);
       tile_cost [ntiles] f64: estimated forward cost of each tile."""
     n = valid.shape[0]
     K = extras.shape[1]
@@ -448,7 +454,7 @@ def bin_tiles(valid, rec, colors, extras, width, height, nworkers):
         tile_start[t + 1] = tile_start[t] + tile_count[t]
     npairs = tile_start[ntiles]
     pidx = np.empty(npairs, np.int32)
-    pair_slot = np.empty(npairs, np.int64)
+    slot_pair = np.empty(npairs, np.int64)
     tile_cost = np.zeros(ntiles, np.float64)
     counter2 = np.zeros(1, np.int64)
     for _w in prange(nworkers):
@@ -456,13 +462,13 @@ def bin_tiles(valid, rec, colors, extras, width, height, nworkers):
             r = _fetch_add(counter2, np.int64(1))
             if r >= nty:
                 break
-            _fill_row(r, row_start, row_list, str_, srec, sbase, tile_start, tile_count, pidx, pair_slot,
+            _fill_row(r, row_start, row_list, str_, srec, sbase, tile_start, tile_count, pidx, slot_pair,
                       tile_cost, ntx, width, height)
-    return vis, tile_start, pidx, srec, sfeat, pair_start, pair_slot, tile_cost
+    return vis, tile_start, pidx, srec, sfeat, pair_start, slot_pair, tile_cost
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _fill_row(r, row_start, row_list, tr, crec, pair_start, tile_start, tile_count, pidx, pair_slot, tile_cost,
+def _fill_row(r, row_start, row_list, tr, crec, pair_start, tile_start, tile_count, pidx, slot_pair, tile_cost,
               ntx, width, height):
     """Append the Gaussians of tile row r to their tiles' pair lists (body of ``bin_tiles``). Here tr, crec
     and pair_start are in depth order and row_list holds depth ranks, so reads go forward in memory."""
@@ -470,7 +476,10 @@ def _fill_row(r, row_start, row_list, tr, crec, pair_start, tile_start, tile_cou
     py1 = min(py0 + TILE, height) - 1
     for t in range(ntx):
         tile_count[r * ntx + t] = tile_start[r * ntx + t]
-    for q in range(row_start[r], row_start[r + 1]):
+    qend = row_start[r + 1]
+    for q in range(row_start[r], qend):
+        if q + PREFETCH_AHEAD < qend:  # the slots are scattered (Gaussian-major order): fetch ahead
+            _prefetch(slot_pair, pair_start[row_list[q + PREFETCH_AHEAD]])
         j = row_list[q]
         tx0 = tr[j, 0]
         nx = tr[j, 1] - tx0 + 1
@@ -484,7 +493,7 @@ def _fill_row(r, row_start, row_list, tr, crec, pair_start, tile_start, tile_cou
             pos = tile_count[tile]
             tile_count[tile] = pos + 1
             pidx[pos] = j
-            pair_slot[pos] = base + t
+            slot_pair[base + t] = pos
             px0 = t * TILE
             px1 = min(px0 + TILE, width) - 1
             tile_cost[tile] += 0.8 * (min(bx1, px1) - max(bx0, px0) + 1) * (gy1 - gy0 + 1) + 8.0
@@ -610,12 +619,18 @@ def raster_forward(pk, pf, pidx, tile_start, order, bg, width, height, depth_min
     ntx = (width + TILE - 1) // TILE
     ntiles = order.shape[0]
     NP = TILE * TILE
+    max_pairs = 1
+    for t in range(ntiles):
+        max_pairs = max(max_pairs, tile_start[t + 1] - tile_start[t])
     counter = np.zeros(1, np.int64)
     for _w in prange(nworkers):
         T = np.empty(NP, np.float64)  # running transmittance; 0 once the pixel has stopped
         Tstop = np.empty(NP, np.float64)  # transmittance at the stop
         acc = np.empty(NP * C, np.float64)  # pixel-major: acc[p * C + c]
         lst = np.empty(NP, np.int64)
+        # work done up to and including each pair of the tile: the backward's cost ends at the last contributor,
+        # read off after the tile (a per-pixel "contributed" flag in the pixel loops cost ~6% of the forward)
+        work_at = np.empty(max_pairs, np.float64)
         while True:
             jt = _fetch_add(counter, np.int64(1))
             if jt >= ntiles:
@@ -634,7 +649,6 @@ def raster_forward(pk, pf, pidx, tile_start, order, bg, width, height, depth_min
             lst[:] = k0
             ndone = 0
             work = 0.0
-            work_last = 0.0
             kend = tile_start[tile + 1]
             _prefetch_pair(pk, pf, pidx, k0, kend)
             _prefetch_pair(pk, pf, pidx, k0 + 1, kend)
@@ -648,7 +662,6 @@ def raster_forward(pk, pf, pidx, tile_start, order, bg, width, height, depth_min
                 else:
                     Grow, Erow, Fy = _pair_start(mx, my, ca, cb, cc, gx0, gy0)
                 f4, f5, f6, f7 = _load_extras4(pf, j)
-                hit = False
                 for y in range(gy0, gy1 + 1):
                     if chord:
                         sx0, sx1, G, E = _row_span(mx, ca, cb, cc, qmax, my - y, gx0, gx1)
@@ -679,7 +692,6 @@ def raster_forward(pk, pf, pidx, tile_start, order, bg, width, height, depth_min
                             acc[q + np.uint64(6)] += f6 * w
                             acc[q + np.uint64(7)] += f7 * w
                             lst[p] = max(lst[p], (k + 1) * (w > 0.0))
-                            hit |= w > 0.0
                     elif C == 4:  # no extras: a lean copy of the loop
                         for x in range(sx0, sx1 + 1):
                             g = G
@@ -696,7 +708,6 @@ def raster_forward(pk, pf, pidx, tile_start, order, bg, width, height, depth_min
                             acc[q + np.uint64(2)] += f2 * w
                             acc[q + np.uint64(3)] += f3 * w
                             lst[p] = max(lst[p], (k + 1) * (w > 0.0))
-                            hit |= w > 0.0
                     else:
                         for x in range(sx0, sx1 + 1):
                             g = G
@@ -715,12 +726,13 @@ def raster_forward(pk, pf, pidx, tile_start, order, bg, width, height, depth_min
                             for c in range(4, C):
                                 acc[q + np.uint64(c)] += pf[j, c] * w
                             lst[p] = max(lst[p], (k + 1) * (w > 0.0))
-                            hit |= w > 0.0
-                if hit:
-                    work_last = work
+                work_at[k - k0] = work
                 if ndone == npix:
                     break
-            work_bwd[tile] = work_last
+            kl = k0
+            for p in range(NP):
+                kl = max(kl, lst[p])
+            work_bwd[tile] = work_at[kl - k0 - 1] if kl > k0 else 0.0
             for y in range(y0, y1 + 1):
                 for x in range(x0, x1 + 1):
                     p = (y - y0) * TILE + (x - x0)
@@ -741,11 +753,11 @@ def raster_forward(pk, pf, pidx, tile_start, order, bg, width, height, depth_min
 
 
 @njit(cache=True, nogil=True, parallel=True, fastmath=FMA)
-def raster_backward(pk, pf, pidx, pair_slot, tile_start, order, bg, width, height, depth_min_alpha, g_color,
+def raster_backward(pk, pf, pidx, tile_start, order, bg, width, height, depth_min_alpha, g_color,
                     g_depth_raw, g_extras, g_depth, g_alpha, depth_raw, tfinal, last, pg, nworkers):
     """Back-to-front gradients from dL/d(color [H,W,3], depth_raw [H,W], extras [H,W,K], depth [H,W],
     alpha [H,W]) (f32; the depth normalisation of ``raster_forward`` is differentiated here, per pixel).
-    Writes every row of pg [npairs, 6+C] f32: for pair k, at row pair_slot[k], the sums over its pixels of
+    Writes every row of pg [npairs, 6+C] f32: for pair k, at row k, the sums over its pixels of
     dL/d(mean_x, mean_y, conic_a, conic_b, conic_c, opacity, feat...)."""
     C = pf.shape[1]
     uC = np.uint64(C)
@@ -798,9 +810,8 @@ def raster_backward(pk, pf, pidx, pair_slot, tile_start, order, bg, width, heigh
                     lst[p] = last[y, x]
                     kmax = max(kmax, last[y, x])
             for k in range(kmax, k1):
-                sl = pair_slot[k]
                 for d in range(D):
-                    pg[sl, d] = 0.0
+                    pg[k, d] = 0.0
             _prefetch_pair(pk, pf, pidx, kmax - 1, kmax)
             _prefetch_pair(pk, pf, pidx, kmax - 2, kmax)
             for k in range(kmax - 1, k0 - 1, -1):
@@ -938,28 +949,27 @@ def raster_backward(pk, pf, pidx, pair_slot, tile_start, order, bg, width, heigh
                 gca = -0.5 * s2t
                 gcc = -0.5 * sdy2t
                 gcb = -sdyt
-                sl = pair_slot[k]
-                pg[sl, 0] = gmx
-                pg[sl, 1] = gmy
-                pg[sl, 2] = gca
-                pg[sl, 3] = gcb
-                pg[sl, 4] = gcc
-                pg[sl, 5] = s0t / o  # dalpha/do = exp(power) = dalpha/dpower / o
-                pg[sl, 6] = gf0
-                pg[sl, 7] = gf1
-                pg[sl, 8] = gf2
-                pg[sl, 9] = gf3
+                pg[k, 0] = gmx
+                pg[k, 1] = gmy
+                pg[k, 2] = gca
+                pg[k, 3] = gcb
+                pg[k, 4] = gcc
+                pg[k, 5] = s0t / o  # dalpha/do = exp(power) = dalpha/dpower / o
+                pg[k, 6] = gf0
+                pg[k, 7] = gf1
+                pg[k, 8] = gf2
+                pg[k, 9] = gf3
                 if C == 8:
                     gf[4], gf[5], gf[6], gf[7] = gf4, gf5, gf6, gf7
                 for c in range(4, C):
-                    pg[sl, 6 + c] = gf[c]
+                    pg[k, 6 + c] = gf[c]
 
 
 @njit(cache=True, nogil=True, parallel=True, fastmath=FMA)
 def project_backward(means, quats, scales, Rcw, tcw, fx, fy, cx, cy, width, height, eps2d, vis, pair_start,
-                     pg, g_means, g_quats, g_scales, g_opac, g_colors, g_extras, g_m2d, g_pose_chunks, nworkers):
-    """Sum each visible Gaussian's per-pair gradients (its rows of pg), then apply the chain rule to the
-    inputs. Writes the rows ``vis`` of g_* (the caller zeroes the others); g_pose_chunks [nchunks, 12]
+                     slot_pair, pg, g_means, g_quats, g_scales, g_opac, g_colors, g_extras, g_m2d, g_pose_chunks, nworkers):
+    """Sum each visible Gaussian's per-pair gradients (its rows of pg, listed in slot_pair), then apply the chain
+    rule to the inputs. Writes the rows ``vis`` of g_* (the caller zeroes the others); g_pose_chunks [nchunks, 12]
     receives partial sums of dL/dRcw (row-major, 9) and dL/dtcw (3)."""
     nv = vis.shape[0]
     D = pg.shape[1]
@@ -981,12 +991,18 @@ def project_backward(means, quats, scales, Rcw, tcw, fx, fy, cx, cy, width, heig
             if ch >= nchunks:
                 break
             P[:] = 0.0
-            for j in range(ch * csize, min(nv, (ch + 1) * csize)):
+            j1 = min(nv, (ch + 1) * csize)
+            qend = pair_start[j1] if j1 > ch * csize else 0
+            for j in range(ch * csize, j1):
                 i = vis[j]
                 gs[:] = 0.0
                 for q in range(pair_start[j], pair_start[j + 1]):
+                    if q + PREFETCH_AHEAD < qend:
+                        _prefetch(pg, slot_pair[q + PREFETCH_AHEAD])
+                        _prefetch_last(pg, slot_pair[q + PREFETCH_AHEAD])
+                    k = slot_pair[q]
                     for d in range(D):
-                        gs[d] += pg[q, d]
+                        gs[d] += pg[k, d]
                 gmx = gs[0]
                 gmy = gs[1]
                 gA = gs[2]
