@@ -117,3 +117,38 @@ def test_child_head_gradients_match_finite_differences_with_surfels():
         return torch.cat([t.flatten() for t in out[:5]])
 
     assert torch.autograd.gradcheck(f, ins, eps=1e-6, atol=1e-6)
+
+
+def test_child_head_sh_gradients_match_finite_differences_and_outputs_are_guarded():
+    """Degree-1 SH colour with surfels: every input's gradient (the view direction's through the child's mean, which the
+    backward reads back from the forward's output) against finite differences; editing that output in place before
+    the backward is an error, not a silently wrong gradient."""
+    from ggfslam.gaussians.child_head import child_head
+
+    g = torch.Generator().manual_seed(7)
+    M, k = 4, 3
+    d = dict(dtype=torch.float64)
+    raw_o = (0.5 + torch.rand(M, k, generator=g, **d)) * torch.tensor([1.0, 1.0, -1.0], **d)
+    raw_c, raw_cov = 0.3 * torch.randn(M, k, 4, 3, generator=g, **d), torch.randn(M, k, 7, generator=g, **d)
+    raw_c[:, :, 0] += 1.0  # colours well above the clamp at 0
+    raw_cov[..., 3] += 2.0
+    offsets, base = torch.randn(M, k, 3, generator=g, **d), torch.randn(M, k, 3, generator=g, **d)
+    log_scale = torch.full((M, 3), -2.0, **d) + 0.1 * torch.randn(M, 3, generator=g, **d)
+    anchors = torch.randn(M, 3, generator=g, **d)
+    n = torch.nn.functional.normalize(torch.randn(M, 3, generator=g, **d), dim=1)
+    spec = SurfelSpec(torch.tensor([True, False, True, False]), n, quat_z_to(n), anchors + 0.1,
+                      torch.full((M,), 0.06, **d), 1e-4, True)
+    cam = torch.tensor([3.0, -2.0, 4.0], **d)
+    ins = [t.requires_grad_() for t in (raw_o, raw_c, raw_cov, offsets, log_scale, base)]
+
+    def f(ro, rc, rv, off, ls, bc):
+        out = child_head(ro, rc, rv, anchors, ls, off, bc, torch.arange(M), spec, cam, sh_degree=1)
+        return torch.cat([t.flatten() for t in out[:5]])
+
+    assert torch.autograd.gradcheck(f, ins, eps=1e-6, atol=1e-6)
+    means, _, _, opac, _, _, _ = child_head(*ins[:3], anchors, ins[4], ins[3], ins[5], torch.arange(M), spec, cam, 1)
+    loss = means.sum() + opac.sum()
+    with torch.no_grad():
+        means.add_(1.0)
+    with pytest.raises(RuntimeError, match="modified by an inplace operation"):
+        loss.backward()
