@@ -119,10 +119,9 @@ def test_child_head_gradients_match_finite_differences_with_surfels():
     assert torch.autograd.gradcheck(f, ins, eps=1e-6, atol=1e-6)
 
 
-def test_child_head_sh_gradients_match_finite_differences_and_outputs_are_guarded():
+def test_child_head_sh_gradients_match_finite_differences_with_surfels():
     """Degree-1 SH colour with surfels: every input's gradient (the view direction's through the child's mean, which the
-    backward reads back from the forward's output) against finite differences; editing that output in place before
-    the backward is an error, not a silently wrong gradient."""
+    backward reads back from what the forward kept) against finite differences."""
     from ggfslam.gaussians.child_head import child_head
 
     g = torch.Generator().manual_seed(7)
@@ -146,9 +145,3 @@ def test_child_head_sh_gradients_match_finite_differences_and_outputs_are_guarde
         return torch.cat([t.flatten() for t in out[:5]])
 
     assert torch.autograd.gradcheck(f, ins, eps=1e-6, atol=1e-6)
-    means, _, _, opac, _, _, _ = child_head(*ins[:3], anchors, ins[4], ins[3], ins[5], torch.arange(M), spec, cam, 1)
-    loss = means.sum() + opac.sum()
-    with torch.no_grad():
-        means.add_(1.0)
-    with pytest.raises(RuntimeError, match="modified by an inplace operation"):
-        loss.backward()
