@@ -120,8 +120,8 @@ def test_child_head_gradients_match_finite_differences_with_surfels():
 
 
 def test_child_head_sh_gradients_match_finite_differences_with_surfels():
-    """Degree-1 SH colour with surfels: every input's gradient (the view direction's through the child's mean, which the
-    backward reads back from what the forward kept) against finite differences."""
+    """Degree-1 SH colour with surfels: every input's gradient, the view direction's through the child's mean included,
+    against finite differences (the gradcheck above runs degree 0)."""
     from ggfslam.gaussians.child_head import child_head
 
     g = torch.Generator().manual_seed(7)

@@ -967,7 +967,8 @@ def raster_backward(pk, pf, pidx, tile_start, order, bg, width, height, depth_mi
 
 @njit(cache=True, nogil=True, parallel=True, fastmath=FMA)
 def project_backward(means, quats, scales, Rcw, tcw, fx, fy, cx, cy, width, height, eps2d, vis, pair_start,
-                     slot_pair, pg, g_means, g_quats, g_scales, g_opac, g_colors, g_extras, g_m2d, g_pose_chunks, nworkers):
+                     slot_pair, pg, g_means, g_quats, g_scales, g_opac, g_colors, g_extras, g_m2d, g_pose_chunks,
+                     nworkers):
     """Sum each visible Gaussian's per-pair gradients (its rows of pg, listed in slot_pair), then apply the chain
     rule to the inputs. Writes the rows ``vis`` of g_* (the caller zeroes the others); g_pose_chunks [nchunks, 12]
     receives partial sums of dL/dRcw (row-major, 9) and dL/dtcw (3)."""
