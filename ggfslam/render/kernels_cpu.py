@@ -761,7 +761,6 @@ def raster_backward(pk, pf, pidx, tile_start, order, bg, width, height, depth_mi
     dL/d(mean_x, mean_y, conic_a, conic_b, conic_c, opacity, feat...)."""
     C = pf.shape[1]
     uC = np.uint64(C)
-    D = pg.shape[1]
     ntx = (width + TILE - 1) // TILE
     ntiles = order.shape[0]
     NP = TILE * TILE
@@ -809,9 +808,7 @@ def raster_backward(pk, pf, pidx, tile_start, order, bg, width, height, depth_mi
                     Rr[p] = tf * (bgg - gal)
                     lst[p] = last[y, x]
                     kmax = max(kmax, last[y, x])
-            for k in range(kmax, k1):
-                for d in range(D):
-                    pg[k, d] = 0.0
+            pg[kmax:k1] = 0.0  # pairs behind every pixel's last contributor
             _prefetch_pair(pk, pf, pidx, kmax - 1, kmax)
             _prefetch_pair(pk, pf, pidx, kmax - 2, kmax)
             for k in range(kmax - 1, k0 - 1, -1):
@@ -993,7 +990,7 @@ def project_backward(means, quats, scales, Rcw, tcw, fx, fy, cx, cy, width, heig
                 break
             P[:] = 0.0
             j1 = min(nv, (ch + 1) * csize)
-            qend = pair_start[j1] if j1 > ch * csize else 0
+            qend = pair_start[j1]  # end of the chunk's slots (pair_start has nv + 1 entries)
             for j in range(ch * csize, j1):
                 i = vis[j]
                 gs[:] = 0.0
