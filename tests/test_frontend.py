@@ -274,3 +274,28 @@ def test_keyframes_due_by_time_wait_for_a_sharp_frame(ratio):
     assert back.recent_sharpness == tracker.recent_sharpness and len(back.recent_sharpness) == (10 if ratio else 0)
     del back.__dict__["recent_sharpness"]  # a checkpoint written before the history existed
     assert load_tracker_pickle(pickle.dumps(back)).recent_sharpness == []
+
+
+def test_dense_odometry_is_repeatable_and_restores_open3d_threads():
+    """Open3D's threaded reductions differ run to run by ~1e-15; one thread per alignment gives the same pose every
+    time (and the motion is the ground truth's), and the caller's Open3D thread limit is back afterwards."""
+    import open3d as o3d
+
+    from ggfslam.frontend.dense_odometry import DenseOdometry
+
+    seq = SyntheticSequence(n_frames=2, width=320, height=240, trajectory="orbit", seed=3)
+    f0, f1 = list(seq)
+    odo = DenseOdometry(seq.camera, TrackingConfig())
+    prev, cur = odo.rgbd(f0), odo.rgbd(f1)
+    o3d.utility.set_max_threads(2)
+    try:
+        runs = [odo.relative(cur, prev, np.eye(4)) for _ in range(6)]
+        assert o3d.utility.get_max_threads() == 2
+    finally:
+        o3d.utility.set_max_threads(0)
+    assert all(ok for ok, _, _ in runs)
+    assert all(np.array_equal(T, runs[0][1]) for _, T, _ in runs[1:])
+    T_gt = invert(seq.poses[0]) @ seq.poses[1]  # current camera in the previous camera's frame
+    assert np.linalg.norm(runs[0][1][:3, 3] - T_gt[:3, 3]) < 0.005
+    with pytest.raises(ValueError, match="dense_threads"):
+        TrackingConfig(dense_threads=-1)

@@ -2,9 +2,12 @@
 
 Used as the baseline tracker on its own, and by the feature frontend as a fallback where a view has too little
 texture for ORB matches (a plain cabinet on a plain floor). Open3D's legacy pipeline is used: its tensor twin is
-faster but not repeatable run to run (threaded reductions), and the deterministic mode needs the same result.
+faster but not repeatable run to run (threaded reductions). Since Open3D went over to TBB the legacy pipeline's
+reductions are threaded too, so each alignment runs with ``tracking.dense_threads`` threads (1: repeatable).
 """
 from __future__ import annotations
+
+from contextlib import contextmanager
 
 import cv2
 import numpy as np
@@ -18,6 +21,20 @@ _JACOBIANS = {
     "hybrid": o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm,
     "color": o3d.pipelines.odometry.RGBDOdometryJacobianFromColorTerm,
 }
+
+
+@contextmanager
+def open3d_threads(n: int):
+    """Open3D's process-wide thread limit set to ``n`` inside the block (0: left as it is), restored after."""
+    if n <= 0:
+        yield
+        return
+    before = o3d.utility.get_max_threads()  # the caller's limit, or the hardware's concurrency
+    o3d.utility.set_max_threads(n)
+    try:
+        yield
+    finally:
+        o3d.utility.set_max_threads(before)
 
 
 class DenseOdometry:
@@ -58,8 +75,9 @@ class DenseOdometry:
                  init: np.ndarray) -> tuple[bool, np.ndarray, float]:
         """(ok, T_prev_cur [4, 4], fitness): the current camera's pose in the previous camera's frame."""
         # source = current, target = previous: the result maps current-camera points into the previous camera
-        ok, T, info = o3d.pipelines.odometry.compute_rgbd_odometry(cur, prev, self.intrinsics, init, self.jacobian,
-                                                                   self.option)
+        with open3d_threads(self.cfg.dense_threads):
+            ok, T, info = o3d.pipelines.odometry.compute_rgbd_odometry(cur, prev, self.intrinsics, init, self.jacobian,
+                                                                       self.option)
         T = np.asarray(T)
         # Open3D's information matrix holds the correspondence count in its translation block
         fitness = float(np.asarray(info)[5, 5]) / (self.size[0] * self.size[1]) if ok else 0.0
