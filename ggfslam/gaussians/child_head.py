@@ -138,8 +138,11 @@ def _child_geometry(m, j, raw_cov, anchors, offsets, L0, L1, L2, pl, align, surf
 @njit(cache=True, nogil=True, parallel=True, fastmath=FMA)
 def head_forward(raw_o, raw_c, raw_cov, anchors, log_scale, offsets, base_color, anchor_index, planar, normals,
                  align, surface, radius, eps, snap, cam, sh_deg, start, out_means, out_quats, out_scales, out_opac,
-                 out_col, out_child, out_local):
-    """Kept children of M anchors into the compact outputs (anchor m's go to rows start[m]...)."""
+                 out_col, out_child, out_local, keep, keep_o):
+    """Kept children of M anchors into the compact outputs (anchor m's go to rows start[m]...). For the backward,
+    ``keep`` [G, 9] float64 holds each child's mean, scale sigmoids and colour sigmoids and ``keep_o`` [G] (raw_o's
+    dtype) its opacity, exactly as computed here (exps and tanh: recomputing them there was about half of its
+    time; each in the type the backward computed it in, so it sees the very values it used to recompute)."""
     m_total, k = raw_o.shape
     nb = (sh_deg + 1) * (sh_deg + 1)
     for ch in prange((m_total + CHUNK - 1) // CHUNK):
@@ -151,31 +154,39 @@ def head_forward(raw_o, raw_c, raw_cov, anchors, log_scale, offsets, base_color,
             for j in range(k):
                 if not raw_o[m, j] > 0.0:
                     continue
-                out_opac[row] = np.tanh(raw_o[m, j])
+                o = np.tanh(raw_o[m, j])
+                out_opac[row] = o
+                keep_o[row] = o
                 mx, my, mz, qw, qx, qy, qz, s0, s1, s2 = _child_geometry(
                     m, j, raw_cov, anchors, offsets, L0, L1, L2, pl, align, surface, normals, radius, eps, snap)
                 _view_basis(sh_deg, mx, my, mz, cam, Y)
                 for c in range(3):
                     v = _sigmoid(raw_c[m, j, c] + base_color[m, j, c])
+                    keep[row, 6 + c] = v
                     for b in range(1, nb):
                         v += Y[b] * raw_c[m, j, 3 * b + c]
                     out_col[row, c] = v if v > 0.0 else 0.0  # 3DGS clamps SH colour at 0
                 out_means[row, 0], out_means[row, 1], out_means[row, 2] = mx, my, mz
+                keep[row, 0], keep[row, 1], keep[row, 2] = mx, my, mz
                 out_quats[row, 0], out_quats[row, 1], out_quats[row, 2], out_quats[row, 3] = qw, qx, qy, qz
                 out_scales[row, 0], out_scales[row, 1], out_scales[row, 2] = s0, s1, s2
                 out_child[row] = anchor_index[m] * k + j
                 out_local[row] = m
+                keep[row, 3] = _sigmoid(raw_cov[m, j, 0])
+                keep[row, 4] = _sigmoid(raw_cov[m, j, 1])
+                keep[row, 5] = _sigmoid(raw_cov[m, j, 2])
                 row += 1
 
 
 @njit(cache=True, nogil=True, parallel=True, fastmath=FMA)
-def head_backward(raw_o, raw_c, raw_cov, anchors, offsets, log_scale, base_color, planar, normals, align, surface,
-                  radius, eps, snap, cam, sh_deg, start, g_means, g_quats, g_scales, g_opac, g_col, gr_o, gr_c,
-                  gr_cov, g_offsets, g_log_scale, g_base):
+def head_backward(raw_o, raw_c, raw_cov, offsets, log_scale, planar, normals, align, radius, snap, cam, sh_deg,
+                  start, keep, keep_o, g_means, g_quats, g_scales, g_opac, g_col, gr_o, gr_c, gr_cov,
+                  g_offsets, g_log_scale, g_base):
     """Gradients of the raw MLP outputs, offsets, log scales and base colours from those of the kept children
     (every element of the outputs is written: children that were not kept get zero, so the caller need not clear
     them, which was ~2.5 ms of a step at 100k children). The SH colour's direction is differentiated too (through
-    the child's mean, as 3DGS does)."""
+    the child's mean, as 3DGS does). The forward's means, opacities and sigmoids are read back from ``keep`` and
+    ``keep_o`` (``head_forward``), not recomputed."""
     m_total, k = raw_o.shape
     nb = (sh_deg + 1) * (sh_deg + 1)
     nrc = gr_c.shape[2]
@@ -200,23 +211,21 @@ def head_backward(raw_o, raw_c, raw_cov, anchors, offsets, log_scale, base_color
                     continue
                 for c in range(3 * nb, nrc):  # coefficients beyond the degree in use
                     gr_c[m, j, c] = 0.0
-                o = np.tanh(raw_o[m, j])
+                o = keep_o[row]
                 gr_o[m, j] = g_opac[row] * (1.0 - o * o)
                 dx = dy = dz = 0.0
                 dist = 1.0
                 if sh_deg > 0:
-                    mx, my, mz, _, _, _, _, _, _, _ = _child_geometry(
-                        m, j, raw_cov, anchors, offsets, L0, L1, L2, pl, align, surface, normals, radius, eps, snap)
-                    dx, dy, dz, dist = _view_basis(sh_deg, mx, my, mz, cam, Y)
+                    dx, dy, dz, dist = _view_basis(sh_deg, keep[row, 0], keep[row, 1], keep[row, 2], cam, Y)
                     for b in range(nb):
                         GY[b] = 0.0
                 for c in range(3):
-                    dc = _sigmoid(raw_c[m, j, c] + base_color[m, j, c])
-                    v = dc
+                    d0 = keep[row, 6 + c]
+                    v = d0
                     for b in range(1, nb):
                         v += Y[b] * raw_c[m, j, 3 * b + c]
                     gc = g_col[row, c] if v > 0.0 else 0.0
-                    g = gc * dc * (1.0 - dc)
+                    g = gc * d0 * (1.0 - d0)
                     gr_c[m, j, c] = g
                     for b in range(1, nb):
                         gr_c[m, j, 3 * b + c] = gc * Y[b]
@@ -231,7 +240,7 @@ def head_backward(raw_o, raw_c, raw_cov, anchors, offsets, log_scale, base_color
                     gm1 += (gy - dot * dy) / dist
                     gm2 += (gz - dot * dz) / dist
                 gq0, gq1, gq2, gq3 = g_quats[row, 0], g_quats[row, 1], g_quats[row, 2], g_quats[row, 3]
-                sig0, sig1, sig2 = _sigmoid(raw_cov[m, j, 0]), _sigmoid(raw_cov[m, j, 1]), _sigmoid(raw_cov[m, j, 2])
+                sig0, sig1, sig2 = keep[row, 3], keep[row, 4], keep[row, 5]
                 if pl:
                     qw, qz = raw_cov[m, j, 3], raw_cov[m, j, 6]
                     nrm = np.sqrt(qw * qw + qz * qz)
@@ -289,12 +298,13 @@ class _ChildHead(torch.autograd.Function):
         means, quats, scales = np.empty((g, 3), f), np.empty((g, 4), f), np.empty((g, 3), f)
         opac, col, child = np.empty(g, f), np.empty((g, 3), f), np.empty(g, np.int64)
         local = np.empty(g, np.int64)
+        keep, keep_o = np.empty((g, 9), np.float64), np.empty(g, f)
         surf = _surfel_arrays(m, surfels, dt)
         ls, bc, off, an = _np(log_scale, dt), _np(base_color, dt), _np(offsets, dt), _np(anchors, dt)
         cam = np.asarray(cam, np.float64)
         head_forward(ro, rc, rv, an, ls, off, bc, anchor_index.numpy(), *surf, cam, sh_deg, start, means, quats,
-                     scales, opac, col, child, local)
-        ctx.np = (ro, rc, rv, an, off, ls, bc, surf, cam, sh_deg, start, g, raw_c.shape)
+                     scales, opac, col, child, local, keep, keep_o)
+        ctx.np = (ro, rc, rv, off, ls, surf, cam, sh_deg, start, g, raw_c.shape, keep, keep_o)
         ctx.dt = dt
         info["child"], info["local"] = torch.from_numpy(child), torch.from_numpy(local)
         return (torch.from_numpy(means), torch.from_numpy(quats), torch.from_numpy(scales), torch.from_numpy(opac),
@@ -302,7 +312,7 @@ class _ChildHead(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_means, g_quats, g_scales, g_opac, g_col):
-        ro, rc, rv, an, off, ls, bc, surf, cam, sh_deg, start, g, c_shape = ctx.np
+        ro, rc, rv, off, ls, surf, cam, sh_deg, start, g, c_shape, keep, keep_o = ctx.np
         dt = ctx.dt
 
         def z(t, shape):
@@ -311,9 +321,10 @@ class _ChildHead(torch.autograd.Function):
         gm, gq, gs = z(g_means, (g, 3)), z(g_quats, (g, 4)), z(g_scales, (g, 3))
         go, gc = z(g_opac, (g,)), z(g_col, (g, 3))
         gr_o, gr_c, gr_cov = np.empty_like(ro), np.empty_like(rc), np.empty_like(rv)  # the kernel writes all
-        g_off, g_ls, g_bc = np.empty_like(off), np.empty_like(ls), np.empty_like(bc)
-        head_backward(ro, rc, rv, an, off, ls, bc, *surf, cam, sh_deg, start, gm, gq, gs, go, gc, gr_o, gr_c, gr_cov,
-                      g_off, g_ls, g_bc)
+        g_off, g_ls, g_bc = np.empty_like(off), np.empty_like(ls), np.empty((len(ro), ro.shape[1], 3), ro.dtype)
+        planar, normals, align, _, radius, _, snap = surf
+        head_backward(ro, rc, rv, off, ls, planar, normals, align, radius, snap, cam, sh_deg, start, keep, keep_o, gm, gq,
+                      gs, go, gc, gr_o, gr_c, gr_cov, g_off, g_ls, g_bc)
         return (torch.from_numpy(gr_o), torch.from_numpy(gr_c).reshape(c_shape), torch.from_numpy(gr_cov),
                 torch.from_numpy(g_off), torch.from_numpy(g_ls), torch.from_numpy(g_bc), None, None, None, None, None,
                 None)
