@@ -263,7 +263,8 @@ class TrackingConfig(_Section):
     """Dense odometry: Open3D threads for each alignment. Open3D (TBB) sums its reductions in a schedule-dependent
     order, so with more than one thread the same frames give poses that differ run to run by ~1e-15, which a whole
     run grows to a different map (fr3/cabinet: 25.53 or 25.65 dB); 1 keeps sequential runs repeatable bit for bit
-    at ~30% more time per alignment (44 -> 58 ms at 320x240); 0 = Open3D's own limit (all cores)."""
+    at ~30% more time per alignment (44 -> 58 ms at 320x240); 0 = Open3D's own limit (all cores). The limit is
+    process-wide: in the concurrent modes Open3D calls of the mapping thread during an alignment get it too."""
     constant_velocity: bool = False
     """Baseline only: start each odometry from the previous frame's motion."""
 
