@@ -121,11 +121,13 @@ def _ssim_taps() -> np.ndarray:
     return g / g.sum()  # [11]
 
 
-@njit(cache=True, nogil=True, parallel=True, fastmath=FMA)
+@njit(cache=True, nogil=True, parallel=True, fastmath=FMA, error_model="numpy")
 def photo_forward(x, y, taps, c1, c2, hz, dS):
     """x (render), y (image) [H, W*C] (rows of interleaved channels): returns (sum |x - y|, sum of the SSIM map over
     the valid [Hv, Wv*C]); hz [5, H, Wv*C] (zeroed) receives the horizontal pass of x, y, xx, yy, xy, and
-    dS [3, Hv, Wv*C] dSSIM/d(mu_x, E[xx], E[xy]). Inner loops run along contiguous rows, so they vectorise."""
+    dS [3, Hv, Wv*C] dSSIM/d(mu_x, E[xx], E[xy]). Inner loops run along contiguous rows, so they vectorise: numba's
+    default ("python") error model tests every division for a zero divisor, which keeps the SSIM loop scalar (its
+    denominators hold C1 and C2 > 0)."""
     H, WC = x.shape
     K = taps.shape[0]
     Hv, Q = dS.shape[1], dS.shape[2]
@@ -138,8 +140,11 @@ def photo_forward(x, y, taps, c1, c2, hz, dS):
         l1_rows[h] = acc
         for t in range(K):
             k, off = taps[t], t * C
+            # shifted rows as slices: an index q + off could be negative to numba, whose wrap-around test turned
+            # these reads into gathers (3x slower)
+            xs, ys = x[h, off:off + Q], y[h, off:off + Q]
             for q in range(Q):
-                a, b = x[h, q + off], y[h, q + off]
+                a, b = xs[q], ys[q]
                 hz[0, h, q] += k * a
                 hz[1, h, q] += k * b
                 hz[2, h, q] += k * a * a
@@ -148,26 +153,29 @@ def photo_forward(x, y, taps, c1, c2, hz, dS):
     ssim_rows = np.zeros(Hv)
     for i in prange(Hv):
         z = np.zeros((5, Q), x.dtype)
+        ab = np.empty(Q)  # the SSIM map's row, summed after the loop: a running sum would keep the loop scalar
         for t in range(K):
             k = taps[t]
             for f in range(5):
                 for q in range(Q):
                     z[f, q] += k * hz[f, i + t, q]
-        acc = 0.0
         for q in range(Q):
             m1, m2, e11, e22, e12 = z[0, q], z[1, q], z[2, q], z[3, q], z[4, q]
             an, ad = 2 * m1 * m2 + c1, m1 * m1 + m2 * m2 + c1
             bn, bd = 2 * (e12 - m1 * m2) + c2, (e11 - m1 * m1) + (e22 - m2 * m2) + c2
             A, B = an / ad, bn / bd
-            acc += A * B
+            ab[q] = A * B
             dS[0, i, q] = (2 * m2 * ad - an * 2 * m1) / (ad * ad) * B + A * (2 * m1 * bn - 2 * m2 * bd) / (bd * bd)
             dS[1, i, q] = -A * bn / (bd * bd)
             dS[2, i, q] = A * 2 / bd
+        acc = 0.0
+        for q in range(Q):
+            acc += ab[q]
         ssim_rows[i] = acc
     return l1_rows.sum(), ssim_rows.sum()
 
 
-@njit(cache=True, nogil=True, parallel=True, fastmath=FMA)
+@njit(cache=True, nogil=True, parallel=True, fastmath=FMA, error_model="numpy")
 def photo_backward(x, y, taps, dS, g_l1, g_ssim, vt, g_x):
     """g_x [H, W*C] = g_l1 * sign(x - y) + g_ssim * dSSIM_sum/dx: the filters' adjoints applied to dS (vertical into
     vt [3, H, Wv*C], zeroed, then horizontal), then the chain through mu_x = f*x, E[xx] = f*x^2, E[xy] = f*xy."""
@@ -186,8 +194,9 @@ def photo_backward(x, y, taps, dS, g_l1, g_ssim, vt, g_x):
         for t in range(K):
             k, off = taps[t], t * C
             for f in range(3):
+                Gs = G[f, off:off + Q]  # a slice, not G[f, q + off]: see photo_forward
                 for q in range(Q):
-                    G[f, q + off] += k * vt[f, h, q]
+                    Gs[q] += k * vt[f, h, q]
         for p in range(WC):
             a, b = x[h, p], y[h, p]
             d = a - b
