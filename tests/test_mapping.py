@@ -154,6 +154,32 @@ def test_a_keyframes_exposure_is_solved_not_learned(sequence, gauge):
     assert m._fit_exposure(0, vignetted, out.alpha, image) == (gauge == "mean")
 
 
+def test_covered_moments_are_the_masked_sums():
+    """The exposure fit's compiled statistics equal numpy's float64 sums over the covered pixels, whatever the
+    thread count; mismatched shapes are refused with their shapes named."""
+    import numba
+
+    from ggfslam.mapping.exposure_kernels import covered_moments
+
+    rng = np.random.default_rng(3)
+    x, y = rng.random((37, 53, 3), dtype=np.float32), rng.random((37, 53, 3), dtype=np.float32)
+    alpha = rng.random((37, 53), dtype=np.float32)
+    m = alpha > 0.4
+    xd, yd = x[m].astype(np.float64), y[m].astype(np.float64)
+    want = np.stack([xd.sum(0), yd.sum(0), (xd * yd).sum(0), (xd * xd).sum(0)])
+    n, sums = covered_moments(x, y, alpha, 0.4)
+    assert n == m.sum()
+    np.testing.assert_allclose(sums, want, rtol=1e-12)
+    threads = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        assert np.array_equal(covered_moments(x, y, alpha, 0.4)[1], sums)
+    finally:
+        numba.set_num_threads(threads)
+    with pytest.raises(ValueError, match=r"\(37, 53\)"):
+        covered_moments(x, y[:, :50], alpha, 0.4)
+
+
 def _two_keyframes(ds) -> tuple[Mapper, dict]:
     """A mapper seeded (not trained) with frames 0 and 12 as keyframes 0 and 1 at their true poses."""
     gt = ds.gt_poses

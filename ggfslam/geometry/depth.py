@@ -72,11 +72,11 @@ def normals_from_depth(depth: np.ndarray, fx: float, fy: float, cx: float, cy: f
 
 
 @njit(cache=True, nogil=True, inline="always")
-def pixel_differences(z, u, v, fx, fy, cx, cy):
-    """The central differences (a: right - left, b: below - above) of the back-projected neighbours of pixel (u, v)
-    of depth z [H, W]; their cross product a x b is the pixel's (unnormalised) normal. Shared by
-    ``normals_from_depth`` and the compiled normal loss (mapping/loss_kernels.py), so both see one normal."""
-    zl, zr, zt, zb = z[v, u - 1], z[v, u + 1], z[v - 1, u], z[v + 1, u]
+def pixel_differences(zl, zr, zt, zb, u, v, fx, fy, cx, cy):
+    """The central differences (a: right - left, b: below - above) of the back-projected neighbours of pixel (u, v),
+    given their depths (left, right, top, bottom); their cross product a x b is the pixel's (unnormalised) normal.
+    Shared by ``normals_from_depth`` and the compiled normal loss (mapping/loss_kernels.py), so both see one
+    normal."""
     a0 = (u + 1 - cx) / fx * zr - (u - 1 - cx) / fx * zl
     a1 = (v - cy) / fy * zr - (v - cy) / fy * zl
     b0 = (u - cx) / fx * zb - (u - cx) / fx * zt
@@ -92,7 +92,7 @@ def _normals_kernel(z, fx, fy, cx, cy, n):
             z0, zl, zr, zt, zb = z[v, u], z[v, u - 1], z[v, u + 1], z[v - 1, u], z[v + 1, u]
             if not (z0 > 0 and zl > 0 and zr > 0 and zt > 0 and zb > 0):
                 continue
-            a0, a1, a2, b0, b1, b2 = pixel_differences(z, u, v, fx, fy, cx, cy)
+            a0, a1, a2, b0, b1, b2 = pixel_differences(zl, zr, zt, zb, u, v, fx, fy, cx, cy)
             c0, c1, c2 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
             norm = np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
             if not norm > 0:

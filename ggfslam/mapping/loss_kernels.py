@@ -19,84 +19,111 @@ from ggfslam.render.types import Intrinsics
 FMA = {"contract"}
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _ray(u, v, fx, fy, cx, cy):
-    return (u - cx) / fx, (v - cy) / fy
-
-
-@njit(cache=True, nogil=True, parallel=True, fastmath=FMA)
+@njit(cache=True, nogil=True, parallel=True, fastmath=FMA, error_model="numpy")
 def normal_loss_forward(z, gt, fx, fy, cx, cy, wdu, wdv):
-    """Sum of (1 - n . gt) over valid pixels and their count; fills wdu, wdv [H, W, 3] with the gradient of the sum
-    w.r.t. each pixel's two difference vectors (zero elsewhere)."""
+    """Sum of (1 - n . gt) over valid pixels and their count, for depth z [H, W] and normals gt [3, H, W] (planar);
+    fills wdu, wdv [3, H, W + 2] (planar, pixel u at column u + 1, every element written: zero at the padding, the
+    border and invalid pixels) with the gradient of the sum w.r.t. each pixel's two difference vectors.
+    Branch-free along each row (invalid pixels are masked, not skipped), so the row loop vectorises."""
     H, W = z.shape
+    n = W - 2
     row_sum = np.zeros(H)
-    row_cnt = np.zeros(H, np.int64)
-    for v in prange(1, H - 1):
-        for u in range(1, W - 1):
-            wdu[v, u, 0] = wdu[v, u, 1] = wdu[v, u, 2] = 0.0
-            wdv[v, u, 0] = wdv[v, u, 1] = wdv[v, u, 2] = 0.0
-            z0, zl, zr, zt, zb = z[v, u], z[v, u - 1], z[v, u + 1], z[v - 1, u], z[v + 1, u]
-            g0, g1, g2 = gt[v, u, 0], gt[v, u, 1], gt[v, u, 2]
-            if not (z0 > 0 and zl > 0 and zr > 0 and zt > 0 and zb > 0) or (g0 == 0 and g1 == 0 and g2 == 0):
-                continue
-            a0, a1, a2, b0, b1, b2 = pixel_differences(z, u, v, fx, fy, cx, cy)  # du, dv
+    row_cnt = np.zeros(H)
+    for v in prange(H):
+        if v == 0 or v == H - 1:
+            for c in range(3):
+                wdu[c, v, :] = 0.0
+                wdv[c, v, :] = 0.0
+            continue
+        # row slices (indices computed from u - 1 would be wrapped by numba and read as gathers)
+        zc, zl, zr, zt, zb = z[v, 1:W - 1], z[v, 0:W - 2], z[v, 2:W], z[v - 1, 1:W - 1], z[v + 1, 1:W - 1]
+        g0s, g1s, g2s = gt[0, v, 1:W - 1], gt[1, v, 1:W - 1], gt[2, v, 1:W - 1]
+        u0, u1, u2 = wdu[0, v, 2:W], wdu[1, v, 2:W], wdu[2, v, 2:W]  # pixels 1 .. W - 2
+        v0, v1, v2 = wdv[0, v, 2:W], wdv[1, v, 2:W], wdv[2, v, 2:W]
+        term = np.empty(n)
+        valid = np.empty(n)
+        y0 = (v - cy) / fy
+        for i in range(n):
+            u = i + 1
+            z0, g0, g1, g2 = zc[i], g0s[i], g1s[i], g2s[i]
+            a0, a1, a2, b0, b1, b2 = pixel_differences(zl[i], zr[i], zt[i], zb[i], u, v, fx, fy, cx, cy)  # du, dv
             c0, c1, c2 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
             sq = c0 * c0 + c1 * c1 + c2 * c2
-            if not sq > 0:
-                continue
+            ok = (z0 > 0 and zl[i] > 0 and zr[i] > 0 and zt[i] > 0 and zb[i] > 0 and sq > 0
+                  and not (g0 == 0 and g1 == 0 and g2 == 0))
             nrm = np.sqrt(sq)
             n0, n1, n2 = c0 / nrm, c1 / nrm, c2 / nrm
-            x0, y0 = _ray(u, v, fx, fy, cx, cy)
+            x0 = (u - cx) / fx
             s = -1.0 if (n0 * x0 + n1 * y0 + n2) * z0 > 0 else 1.0  # face the camera
-            dot = s * (n0 * g0 + n1 * g1 + n2 * g2)
-            row_sum[v] += 1.0 - dot
-            row_cnt[v] += 1
-            # d(1 - s n . g)/dc = -s (I - n n^T) g / |c|
             ng = n0 * g0 + n1 * g1 + n2 * g2
+            term[i] = 1.0 - s * ng if ok else 0.0
+            valid[i] = 1.0 if ok else 0.0
+            # d(1 - s n . g)/dc = -s (I - n n^T) g / |c|; c = a x b: d/da = b x w, d/db = w x a
             w0, w1, w2 = -s * (g0 - ng * n0) / nrm, -s * (g1 - ng * n1) / nrm, -s * (g2 - ng * n2) / nrm
-            # c = a x b: d/da = b x w, d/db = w x a
-            wdu[v, u, 0], wdu[v, u, 1], wdu[v, u, 2] = b1 * w2 - b2 * w1, b2 * w0 - b0 * w2, b0 * w1 - b1 * w0
-            wdv[v, u, 0], wdv[v, u, 1], wdv[v, u, 2] = w1 * a2 - w2 * a1, w2 * a0 - w0 * a2, w0 * a1 - w1 * a0
+            u0[i] = b1 * w2 - b2 * w1 if ok else 0.0
+            u1[i] = b2 * w0 - b0 * w2 if ok else 0.0
+            u2[i] = b0 * w1 - b1 * w0 if ok else 0.0
+            v0[i] = w1 * a2 - w2 * a1 if ok else 0.0
+            v1[i] = w2 * a0 - w0 * a2 if ok else 0.0
+            v2[i] = w0 * a1 - w1 * a0 if ok else 0.0
+        for c in range(3):
+            wdu[c, v, 0], wdu[c, v, 1], wdu[c, v, W], wdu[c, v, W + 1] = 0.0, 0.0, 0.0, 0.0
+            wdv[c, v, 0], wdv[c, v, 1], wdv[c, v, W], wdv[c, v, W + 1] = 0.0, 0.0, 0.0, 0.0
+        acc = 0.0
+        cnt = 0.0
+        for i in range(n):
+            acc += term[i]
+            cnt += valid[i]
+        row_sum[v] = acc
+        row_cnt[v] = cnt
     return row_sum.sum(), row_cnt.sum()
 
 
-@njit(cache=True, nogil=True, parallel=True, fastmath=FMA)
+@njit(cache=True, nogil=True, parallel=True, fastmath=FMA, error_model="numpy")
 def normal_loss_backward(wdu, wdv, scale, fx, fy, cx, cy, g_z):
-    """g_z [H, W] = scale * d(sum)/dz: each pixel gathers from the neighbours whose differences it enters."""
+    """g_z [H, W] = scale * d(sum)/dz: each pixel gathers from the neighbours whose differences it enters (wdu, wdv
+    as ``normal_loss_forward`` wrote them: their zero padding stands in for the neighbours beyond the border)."""
     H, W = g_z.shape
     for v in prange(H):
+        y = (v - cy) / fy
+        # column u + 1 holds pixel u: pixel u - 1 is column u, pixel u + 1 column u + 2
+        ul0, ul1, ul2 = wdu[0, v, 0:W], wdu[1, v, 0:W], wdu[2, v, 0:W]
+        ur0, ur1, ur2 = wdu[0, v, 2:W + 2], wdu[1, v, 2:W + 2], wdu[2, v, 2:W + 2]
+        vt = max(np.int64(v) - 1, 0)  # a row beyond the border contributes nothing (scaled by 0 below)
+        vb = min(np.int64(v) + 1, H - 1)
+        kt = 1.0 if v >= 1 else 0.0
+        kb = 1.0 if v + 1 < H else 0.0
+        vt0, vt1, vt2 = wdv[0, vt, 1:W + 1], wdv[1, vt, 1:W + 1], wdv[2, vt, 1:W + 1]
+        vb0, vb1, vb2 = wdv[0, vb, 1:W + 1], wdv[1, vb, 1:W + 1], wdv[2, vb, 1:W + 1]
+        out = g_z[v]
         for u in range(W):
-            x, y = _ray(u, v, fx, fy, cx, cy)
-            acc = 0.0
-            if u >= 1:  # pixel (u - 1, v) has du = P(u) - P(u - 2)
-                acc += wdu[v, u - 1, 0] * x + wdu[v, u - 1, 1] * y + wdu[v, u - 1, 2]
-            if u + 1 < W:
-                acc -= wdu[v, u + 1, 0] * x + wdu[v, u + 1, 1] * y + wdu[v, u + 1, 2]
-            if v >= 1:
-                acc += wdv[v - 1, u, 0] * x + wdv[v - 1, u, 1] * y + wdv[v - 1, u, 2]
-            if v + 1 < H:
-                acc -= wdv[v + 1, u, 0] * x + wdv[v + 1, u, 1] * y + wdv[v + 1, u, 2]
-            g_z[v, u] = scale * acc
+            x = (u - cx) / fx
+            acc = ul0[u] * x + ul1[u] * y + ul2[u]  # pixel (u - 1, v) has du = P(u) - P(u - 2)
+            acc -= ur0[u] * x + ur1[u] * y + ur2[u]
+            acc += kt * (vt0[u] * x + vt1[u] * y + vt2[u])
+            acc -= kb * (vb0[u] * x + vb1[u] * y + vb2[u])
+            out[u] = scale * acc
 
 
 class _NormalLoss(torch.autograd.Function):
     @staticmethod
     def forward(ctx, depth, gt, intr):
         z = depth.detach().to(torch.float64).contiguous().numpy()
-        g = gt.detach().to(torch.float64).contiguous().numpy()
+        g = gt.detach().permute(2, 0, 1).to(torch.float64).contiguous().numpy()  # [3, H, W]
         H, W = z.shape
-        wdu, wdv = np.zeros((H, W, 3)), np.zeros((H, W, 3))
+        wdu, wdv = np.empty((3, H, W + 2)), np.empty((3, H, W + 2))
         if H >= 3 and W >= 3:
             total, count = normal_loss_forward(z, g, intr.fx, intr.fy, intr.cx, intr.cy, wdu, wdv)
         else:
             total, count = 0.0, 0
+            wdu[:], wdv[:] = 0.0, 0.0
         ctx.save = (wdu, wdv, max(int(count), 1), intr, depth.dtype)
         return torch.tensor(total / max(int(count), 1), dtype=depth.dtype)
 
     @staticmethod
     def backward(ctx, grad):
         wdu, wdv, count, intr, dtype = ctx.save
-        g_z = np.zeros(wdu.shape[:2])
+        g_z = np.empty(wdu.shape[1:2] + (wdu.shape[2] - 2,))
         normal_loss_backward(wdu, wdv, float(grad) / count, intr.fx, intr.fy, intr.cx, intr.cy, g_z)
         return torch.from_numpy(g_z).to(dtype), None, None
 

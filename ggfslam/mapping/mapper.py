@@ -42,6 +42,7 @@ from ggfslam.geometry.depth import backproject, transform_points
 from ggfslam.geometry.se3 import invert, rotation_angle
 from ggfslam.ggf import GeometricGaussianField, planarity_colors
 from ggfslam.mapping.keyframe_store import KeyframeStore, scaled_intrinsics
+from ggfslam.mapping.exposure_kernels import covered_moments
 from ggfslam.mapping.loss_kernels import normal_loss_from_depth
 from ggfslam.mapping.losses import depth_loss, depth_spread_loss, photometric_loss
 from ggfslam.render.api import rasterize
@@ -105,6 +106,7 @@ class Mapper:
         self.kf_loss: dict[int, float] = {}  # each keyframe's photometric loss when it was last trained
         self.view_sink: ViewSink | None = None  # not part of the map's state (checkpoints)
         self._reach_cache: tuple | None = None
+        self._r2_cache: dict[Intrinsics, torch.Tensor] = {}  # squared ray radius [H, W] of the levels (vignetting)
         self.lock = threading.RLock()
 
     def _make_optimizer(self) -> torch.optim.Adam:
@@ -454,8 +456,12 @@ class Mapper:
 
     def vignetting_gain(self, intr: Intrinsics) -> torch.Tensor:
         """The camera's learned vignetting gain [H, W] at intrinsics intr (1 at the optical axis)."""
-        rays = pixel_rays(intr)  # [H, W, 3]
-        r2 = rays[..., 0] ** 2 + rays[..., 1] ** 2
+        r2 = self._r2_cache.get(intr)
+        if r2 is None:
+            rays = pixel_rays(intr)  # [H, W, 3]
+            r2 = rays[..., 0] ** 2 + rays[..., 1] ** 2
+            if intr in (self.store.level_intrinsics(0), self.store.level_intrinsics(1)):  # not each random crop
+                self._r2_cache[intr] = r2
         return 1.0 + self.vignette[0] * r2 + self.vignette[1] * r2 * r2
 
     def sensor_image(self, color: torch.Tensor, intr: Intrinsics, kf_id: int) -> torch.Tensor:
@@ -491,16 +497,14 @@ class Mapper:
         if not self.cfg.exposure or kf_id not in self.exposure_row or (
                 self.exposure_row[kf_id] == 0 and not mean_gauge):
             return False  # with the first keyframe as gauge its exposure stays the identity
-        w = (alpha > min_alpha).float()[..., None]  # [H, W, 1]
-        n = float(w.sum())
+        x = vignetted.detach().float().contiguous().numpy()  # [H, W, 3]
+        n, sums = covered_moments(x, np.ascontiguousarray(rgb, np.float32), alpha.detach().float().contiguous().numpy(),
+                                  min_alpha)  # sums [4, 3]: of x, y, x y, x x per channel
         if n < 100:
             return False
-        x = vignetted
-        y = torch.from_numpy(np.ascontiguousarray(rgb))  # [H, W, 3]
-        wx = w * x
-        xm, ym = wx.sum((0, 1)).double() / n, (w * y).sum((0, 1)).double() / n  # [3]
-        cov = (wx * y).sum((0, 1)).double() / n - xm * ym
-        var = (wx * x).sum((0, 1)).double() / n - xm * xm
+        xm, ym, sxy, sxx = torch.from_numpy(sums / n)  # [3] each
+        cov = sxy - xm * ym
+        var = sxx - xm * xm
         gain = (cov / var.clamp_min(1e-9)).clamp(0.25, 4.0)  # a flat or dark render cannot set a gain
         self.exposure[self.exposure_row[kf_id]] = torch.cat([gain.log(), ym - gain * xm]).float()
         if mean_gauge and recentre:
