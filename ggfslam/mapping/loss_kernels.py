@@ -89,10 +89,9 @@ def normal_loss_backward(wdu, wdv, scale, fx, fy, cx, cy, g_z):
         # column u + 1 holds pixel u: pixel u - 1 is column u, pixel u + 1 column u + 2
         ul0, ul1, ul2 = wdu[0, v, 0:W], wdu[1, v, 0:W], wdu[2, v, 0:W]
         ur0, ur1, ur2 = wdu[0, v, 2:W + 2], wdu[1, v, 2:W + 2], wdu[2, v, 2:W + 2]
-        vt = max(np.int64(v) - 1, 0)  # a row beyond the border contributes nothing (scaled by 0 below)
+        # beyond the border the clamped row is the border row itself, which the forward wrote as zeros
+        vt = max(np.int64(v) - 1, 0)
         vb = min(np.int64(v) + 1, H - 1)
-        kt = 1.0 if v >= 1 else 0.0
-        kb = 1.0 if v + 1 < H else 0.0
         vt0, vt1, vt2 = wdv[0, vt, 1:W + 1], wdv[1, vt, 1:W + 1], wdv[2, vt, 1:W + 1]
         vb0, vb1, vb2 = wdv[0, vb, 1:W + 1], wdv[1, vb, 1:W + 1], wdv[2, vb, 1:W + 1]
         out = g_z[v]
@@ -100,8 +99,8 @@ def normal_loss_backward(wdu, wdv, scale, fx, fy, cx, cy, g_z):
             x = (u - cx) / fx
             acc = ul0[u] * x + ul1[u] * y + ul2[u]  # pixel (u - 1, v) has du = P(u) - P(u - 2)
             acc -= ur0[u] * x + ur1[u] * y + ur2[u]
-            acc += kt * (vt0[u] * x + vt1[u] * y + vt2[u])
-            acc -= kb * (vb0[u] * x + vb1[u] * y + vb2[u])
+            acc += vt0[u] * x + vt1[u] * y + vt2[u]
+            acc -= vb0[u] * x + vb1[u] * y + vb2[u]
             out[u] = scale * acc
 
 
