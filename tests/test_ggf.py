@@ -19,6 +19,7 @@ from ggfslam.ggf.aof import (CONSOLIDATION, EVOLUTION, SUPPRESSION, feedback_los
 from ggfslam.ggf.features import (F_IN, PlaneBorrowing, anchor_geometry, borrow_planes, local_geometry,
                                   positional_encoding)
 from ggfslam.ggf.field import ResidualField, planar_prior, planar_probability
+from ggfslam.ggf.morph_kernels import morph_loss_raw
 from ggfslam.render.api import rasterize
 from ggfslam.render.projection import quat_to_rotmat
 from ggfslam.render.types import RenderSettings
@@ -254,6 +255,42 @@ def test_morph_loss_values_and_gradient():
     s2 = s.clone().requires_grad_(True)
     morph_loss(q[:1], s2[:1] * torch.tensor([1.0, 1.0, 3.0]), n[:1], eps=0.001, unit=0.04).backward()
     assert s2.grad[0, 2].item() > 0  # thickness above eps is pushed down
+
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_compiled_morph_loss_matches_the_reference(dtype):
+    """morph_loss_raw (compiled, on the covariance MLP's raw output) against morph_loss on the same children in
+    plain torch: value and gradients wrt raw_cov and log_scale, with children sharing anchors, some below eps."""
+    gen = torch.Generator().manual_seed(3)
+    M, k, S = 40, 6, 90
+    raw_cov = torch.randn(M, k, 7, generator=gen, dtype=dtype)
+    raw_cov[:5, :, :3] -= 6.0  # thin children: s_a < eps, the relu inactive
+    log_scale = (torch.randn(M, 3, generator=gen, dtype=dtype) * 0.5 - 3.0)
+    flat = torch.randperm(M * k, generator=gen)[:S]
+    m_idx, j_idx = flat // k, flat % k
+    normals = torch.nn.functional.normalize(torch.randn(S, 3, generator=gen, dtype=dtype), dim=1)
+    eps, unit = 1e-3, 0.04
+
+    def reference(rc, ls):
+        cov = rc[m_idx, j_idx]  # [S, 7]
+        return morph_loss(cov[:, 3:], torch.exp(ls[m_idx]) * torch.sigmoid(cov[:, :3]), normals, eps, unit, 0.7, 1.3)
+
+    rc1, ls1 = raw_cov.clone().requires_grad_(), log_scale.clone().requires_grad_()
+    rc2, ls2 = raw_cov.clone().requires_grad_(), log_scale.clone().requires_grad_()
+    ref = reference(rc1, ls1)
+    ref.backward()
+    got = morph_loss_raw(rc2, ls2, m_idx, j_idx, normals, eps, unit, 0.7, 1.3)
+    (got * 2.0).backward()  # the upstream gradient is applied
+    tol = 1e-10 if dtype == torch.float64 else 2e-5
+    assert got.dtype == dtype
+    assert got.item() == pytest.approx(ref.item(), rel=tol, abs=tol)
+    torch.testing.assert_close(rc2.grad, 2.0 * rc1.grad, rtol=tol * 10, atol=tol)
+    torch.testing.assert_close(ls2.grad, 2.0 * ls1.grad, rtol=tol * 10, atol=tol)
+    assert float(ls2.grad.abs().sum()) > 0 and float(rc2.grad[..., 3:].abs().sum()) > 0
+    if dtype == torch.float64:
+        torch.autograd.gradcheck(lambda rc, ls: morph_loss_raw(rc, ls, m_idx, j_idx, normals, eps, unit, 0.7, 1.3),
+                                 (raw_cov.clone().requires_grad_(), log_scale.clone().requires_grad_()))
 
 
 def _looking_down(cam: np.ndarray) -> np.ndarray:

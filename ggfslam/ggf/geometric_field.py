@@ -23,6 +23,7 @@ from ggfslam.ggf.amr import morph_loss, quat_z_to, surfel_shape
 from ggfslam.ggf.aof import EVOLUTION, SUPPRESSION, feedback_loss, feedback_targets, posterior_flatness
 from ggfslam.ggf.features import AnchorGeometry, PlaneBorrowing, anchor_geometry
 from ggfslam.ggf.field import ResidualField, planar_prior, planar_probability
+from ggfslam.ggf.morph_kernels import morph_loss_raw
 
 
 def planarity_colors(p2d: torch.Tensor) -> torch.Tensor:
@@ -106,11 +107,15 @@ class GeometricGaussianField:
             return torch.zeros(())
         if len(idx) > MORPH_SAMPLES:  # an evenly spaced sample: the loss trains the shared decoder, not each child
             idx = idx[:: -(-len(idx) // MORPH_SAMPLES)]
-        quats, scales = g.unshaped(idx)
         c = self.cfg
         n = self.geom.normals.index_select(0, g.anchor_index[idx])
-        return morph_loss(quats, scales, n, c.surfel_eps * self.voxel_size, self.voxel_size, c.lambda_dir,
-                          c.lambda_thin)
+        eps = c.surfel_eps * self.voxel_size
+        if g._unshaped is not None:  # the compiled loss on the raw output (parity-tested against morph_loss)
+            raw_cov, log_scale, local, k = g._unshaped
+            return morph_loss_raw(raw_cov, log_scale, local[idx], g.child_index[idx] % k, n, eps, self.voxel_size,
+                                  c.lambda_dir, c.lambda_thin)
+        quats, scales = g.unshaped(idx)
+        return morph_loss(quats, scales, n, eps, self.voxel_size, c.lambda_dir, c.lambda_thin)
 
     def shape(self, g: DecodedGaussians) -> tuple[DecodedGaussians, torch.Tensor]:
         """Children g of the map decoded without AMR (``decode(reference=True)``) with AMR applied to those of

@@ -395,7 +395,8 @@ class Mapper:
                 l_spread = depth_spread_loss(moments[..., 0], moments[..., 1], out.alpha, gt_depth > 0)
                 loss = loss + c.lambda_depth_spread * l_spread
             if c.lambda_scale > 0:
-                vol = g.scales.prod(dim=1).mean() / self.map.voxel_size ** 3
+                s0, s1, s2 = g.scales.unbind(1)  # prod(dim=1)'s backward: 1.1 ms at 100k children, this 0.4
+                vol = (s0 * s1 * s2).mean() / self.map.voxel_size ** 3
                 loss = loss + c.lambda_scale * vol
             if self.ggf is not None and self.ggf_cfg.lambda_morph > 0:
                 loss = loss + self.ggf_cfg.lambda_morph * l_morph
