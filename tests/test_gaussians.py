@@ -74,6 +74,28 @@ def test_decoder_gradients_match_finite_differences():
     assert torch.autograd.gradcheck(f, (feats, log_scale, offsets, base), eps=1e-6, atol=1e-6)
 
 
+
+def test_view_independent_decoder_equals_its_mlps_on_zero_view_inputs():
+    """Without view inputs the first layers skip their four view columns: the same outputs and weight gradients
+    as the MLPs applied to [features, 0, 0, 0, 0] (the view columns' gradient is zero)."""
+    torch.manual_seed(0)
+    dec = ChildDecoder(feature_dim=6, k=3, hidden=8, sh_degree=1).double()
+    feats = torch.randn(5, 6, dtype=torch.float64)
+    x = torch.cat([feats, torch.zeros(5, 4, dtype=torch.float64)], 1)
+    got = dec.raw(torch.randn(5, 3, dtype=torch.float64), feats)
+    want = (dec.opacity(x), dec.color(x).view(5, 3, 4, 3), dec.cov(x).view(5, 3, 7))
+    weights = [p for mlp in (dec.opacity, dec.color, dec.cov) for p in mlp.parameters()]
+    gouts = [torch.randn_like(t) for t in want]
+    g_got = torch.autograd.grad(got, weights, gouts)
+    g_want = torch.autograd.grad(want, weights, gouts)
+    for a, b in zip(got, want):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+    for a, b in zip(g_got, g_want):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+    for i in (0, 4, 8):  # each MLP's first-layer weight [8, 10]: nothing reaches the view columns
+        assert float(g_got[i][:, 6:].abs().max()) == 0.0 and float(g_got[i][:, :6].abs().max()) > 0.0
+
+
 def test_what_the_viewpoint_changes_in_each_decoder():
     """Default: only the SH colour follows the view; degree 0: nothing; Scaffold-GS: shape and opacity too."""
     m, _ = _map(10)

@@ -116,3 +116,42 @@ def test_gradients_match_reference(name):
         err = (a[k].double() - b[k].double()).abs().max().item()
         assert err <= 1e-3 * scale + 1e-6, f"{name}/{k}: max error {err} vs scale {scale}"
         assert scale > 0, k
+
+
+def test_depth_sort_is_the_stable_serial_order():
+    """The parallel radix sort (several chunks, every digit pass used) orders keys by their upper 32 bits, ties
+    in input order, as a stable argsort does."""
+    from ggfslam.render.kernels_cpu import RADIX_CHUNK, _radix_sort_hi32
+
+    rng = np.random.default_rng(0)
+    n = 3 * RADIX_CHUNK + 17
+    hi = rng.integers(0, 2 ** 32, n, dtype=np.uint64)
+    hi[::7] = hi[0]  # ties
+    keys = (hi << np.uint64(32)) | np.arange(n, dtype=np.uint64)
+    want = keys[np.argsort(hi, kind="stable")]
+    for workers in (1, 2, 3):
+        got = _radix_sort_hi32(keys.copy(), np.empty(n, np.uint64), workers)
+        assert np.array_equal(got, want)
+
+
+def test_tile_lists_do_not_depend_on_the_worker_count():
+    """bin_tiles with 1, 2 and 3 workers: the same depth order, tile lists, pair slots and tile costs; every pair of
+    a tile in depth order and every (Gaussian, tile) pair listed once."""
+    from ggfslam.render import kernels_cpu as kc
+
+    sc = random_gaussians(5000, seed=4, scale_range=(0.005, 0.08))
+    W, H = 200, 150
+    n = len(sc["means"])
+    rec, radii, valid = np.empty((n, kc.REC), np.float32), np.empty(n, np.int32), np.empty(n, np.bool_)
+    kc.project_forward(sc["means"], sc["quats"], sc["scales"], sc["opacities"], np.eye(3), np.array([0.0, 0.0, 2.0]),
+                       180.0, 180.0, 100.0, 75.0, W, H, 0.05, 100.0, 0.3, rec, radii, valid, 2)
+    outs = [kc.bin_tiles(valid, rec, sc["colors"], np.zeros((n, 0), np.float32), W, H, w) for w in (1, 2, 3)]
+    for other in outs[1:]:
+        for a, b in zip(outs[0], other):
+            assert np.array_equal(a, b)
+    vis, tile_start, pidx, srec, _, pair_start, slot_pair, _ = outs[0]
+    assert valid.sum() == len(vis) > 1000 and tile_start[-1] == len(pidx) == pair_start[-1]
+    for t in range(len(tile_start) - 1):
+        assert np.all(np.diff(pidx[tile_start[t]:tile_start[t + 1]]) > 0)  # depth ranks ascend within a tile
+    assert np.array_equal(np.sort(slot_pair), np.arange(len(pidx)))  # each pair slot used once
+    assert np.all(np.diff(srec[:, kc.R_Z]) >= 0)

@@ -9,9 +9,10 @@ Pipeline (one render)
    clipped to the image. A conservative screen-space test (2D extent bounded by the largest scale)
    rejects off-screen Gaussians before their covariance is built. Culled: depth outside [near, far],
    opacity < 1/255, non-finite values, empty box. Each Gaussian's result is one 64-byte float32 record.
-2. ``bin_tiles``: compaction, radix sort of the visible Gaussians by view depth (one pass over 64-bit
-   ``depth bits << 32 | index`` keys), depth-ordered copies of their records and features (``srec``,
-   ``sfeat``; a parallel gather with software prefetch), per-tile lists (16x16 tiles, depth order inside a
+2. ``bin_tiles`` (every pass parallel over chunks of Gaussians or tile rows; serial only prefix sums): compaction,
+   radix sort of the visible Gaussians by view depth (64-bit ``depth bits << 32 | index`` keys, digits counted
+   per chunk), depth-ordered copies of their records and features (``srec``, ``sfeat``; a gather with software
+   prefetch), per-tile lists (16x16 tiles, depth order inside a
    tile) that hold each pair's depth rank (``pidx``, 4 bytes a pair). The rasterizers read a pair's record
    through ``pidx`` and prefetch the records of the pairs two steps ahead: the depth-ordered records are
    small (Nv x 64 bytes) and the prefetch hides most cache misses, so this is faster overall than copying a
@@ -328,30 +329,55 @@ def _project_one(i, means, quats, scales, opac, Rcw, tcw, fx, fy, cx, cy, width,
     rec[i, R_Y1] = fy1
 
 
-@njit(cache=True, nogil=True)
-def _radix_sort_hi32(a, tmp):
+RADIX_CHUNK = 16384  # keys per work item of the radix sort's histogram and scatter passes
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _radix_sort_hi32(a, tmp, nworkers):
     """Stable sort of uint64 values by their upper 32 bits (LSD radix, three 11-bit digits; a pass whose digit
-    is the same for every value is skipped). Returns the sorted array (``a`` or ``tmp``)."""
+    is the same for every value is skipped). Each pass counts digits per chunk of keys and scatters the chunks in
+    parallel, chunk c's keys of digit b after those of chunks < c: the order is the serial sort's. Returns the
+    sorted array (``a`` or ``tmp``)."""
     n = a.shape[0]
-    counts = np.empty(2048, np.int64)
+    nch = max(1, (n + RADIX_CHUNK - 1) // RADIX_CHUNK)
+    hist = np.empty((nch, 2048), np.int64)
     m = np.uint64(2047)
     for shift in (32, 43, 54):
         sh = np.uint64(shift)
-        counts[:] = 0
-        for j in range(n):
-            counts[(a[j] >> sh) & m] += 1
-        if n == 0 or counts[(a[0] >> sh) & m] == n:
+        counter = np.zeros(1, np.int64)
+        for _w in prange(nworkers):
+            while True:
+                ch = _fetch_add(counter, np.int64(1))
+                if ch >= nch:
+                    break
+                hist[ch, :] = 0
+                for j in range(ch * RADIX_CHUNK, min(n, (ch + 1) * RADIX_CHUNK)):
+                    hist[ch, (a[j] >> sh) & m] += 1
+        if n == 0:
+            continue
+        b0 = (a[0] >> sh) & m
+        same = 0
+        for ch in range(nch):
+            same += hist[ch, b0]
+        if same == n:
             continue
         tot = 0
         for b in range(2048):
-            c = counts[b]
-            counts[b] = tot
-            tot += c
-        for j in range(n):
-            v = a[j]
-            b = (v >> sh) & m
-            tmp[counts[b]] = v
-            counts[b] += 1
+            for ch in range(nch):
+                c = hist[ch, b]
+                hist[ch, b] = tot
+                tot += c
+        counter[0] = 0
+        for _w in prange(nworkers):
+            while True:
+                ch = _fetch_add(counter, np.int64(1))
+                if ch >= nch:
+                    break
+                for j in range(ch * RADIX_CHUNK, min(n, (ch + 1) * RADIX_CHUNK)):
+                    v = a[j]
+                    b = (v >> sh) & m
+                    tmp[hist[ch, b]] = v
+                    hist[ch, b] += 1
         a, tmp = tmp, a
     return a
 
@@ -368,44 +394,69 @@ def bin_tiles(valid, rec, colors, extras, width, height, nworkers):
       pair_start [Nv+1] i64, slot_pair [npairs] i64: the pairs in Gaussian-major order: compact Gaussian j's
       are slot_pair[pair_start[j]:pair_start[j+1]] (the backward writes its per-pair gradients in pair order,
       ``project_backward`` sums each Gaussian's through this);
-      tile_cost [ntiles] f64: estimated forward cost of each tile."""
+      tile_cost [ntiles] f64: estimated forward cost of each tile.
+    Every pass is parallel over chunks of Gaussians or over tile rows; the serial parts are prefix sums over
+    chunks, rows and tiles. The outputs do not depend on the number of workers."""
     n = valid.shape[0]
     K = extras.shape[1]
     C = 4 + K
     ntx = (width + TILE - 1) // TILE
     nty = (height + TILE - 1) // TILE
     ntiles = ntx * nty
-    nv = 0
-    for i in range(n):
-        if valid[i]:
-            nv += 1
-    # compaction (index order): sort keys (depth bits << 32 | compact index) and pair counts
+    # compaction (index order): per chunk its visible Gaussians and pairs, then sort keys (depth bits << 32 |
+    # compact index) and pair offsets
+    nchi = max(1, (n + CHUNK - 1) // CHUNK)
+    cvis = np.zeros(nchi + 1, np.int64)
+    cpair = np.zeros(nchi + 1, np.int64)
+    counter = np.zeros(1, np.int64)
+    for _w in prange(nworkers):
+        while True:
+            ch = _fetch_add(counter, np.int64(1))
+            if ch >= nchi:
+                break
+            c = 0
+            tot = 0
+            for i in range(ch * CHUNK, min(n, (ch + 1) * CHUNK)):
+                if valid[i]:
+                    c += 1
+                    tot += _pair_count(rec, i)
+            cvis[ch + 1] = c
+            cpair[ch + 1] = tot
+    for ch in range(nchi):
+        cvis[ch + 1] += cvis[ch]
+        cpair[ch + 1] += cpair[ch]
+    nv = cvis[nchi]
     vis = np.empty(nv, np.int32)
     skey = np.empty(nv, np.uint64)
     pair_start = np.empty(nv + 1, np.int64)
     pair_start[0] = 0
     zbits = rec.view(np.uint32)  # non-negative float32 depths sort like their bit patterns
-    j = 0
-    tot = 0
-    for i in range(n):
-        if valid[i]:
-            vis[j] = i
-            skey[j] = (np.uint64(zbits[i, R_Z]) << np.uint64(32)) | np.uint64(j)
-            tx0 = np.int64(rec[i, R_X0]) // TILE
-            tx1 = np.int64(rec[i, R_X1]) // TILE
-            ty0 = np.int64(rec[i, R_Y0]) // TILE
-            ty1 = np.int64(rec[i, R_Y1]) // TILE
-            tot += (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
-            j += 1
-            pair_start[j] = tot
-    skey = _radix_sort_hi32(skey, np.empty(nv, np.uint64))  # stable: ties keep the compact order
-    # depth-ordered copies (parallel gather; the rasterizers read the records from here)
+    counter[0] = 0
+    for _w in prange(nworkers):
+        while True:
+            ch = _fetch_add(counter, np.int64(1))
+            if ch >= nchi:
+                break
+            j = cvis[ch]
+            tot = cpair[ch]
+            for i in range(ch * CHUNK, min(n, (ch + 1) * CHUNK)):
+                if valid[i]:
+                    vis[j] = i
+                    skey[j] = (np.uint64(zbits[i, R_Z]) << np.uint64(32)) | np.uint64(j)
+                    tot += _pair_count(rec, i)
+                    j += 1
+                    pair_start[j] = tot
+    skey = _radix_sort_hi32(skey, np.empty(nv, np.uint64), nworkers)  # stable: ties keep the compact order
+    # depth-ordered copies (parallel gather; the rasterizers read the records from here), with per chunk the
+    # number of Gaussians and of pairs in each tile row
     srec = np.empty((nv, REC), np.float32)
     sfeat = np.empty((nv, C), np.float32)
     str_ = np.empty((nv, 4), np.int32)  # tile ranges tx0, tx1, ty0, ty1
     sbase = np.empty(nv, np.int64)
-    nch = (nv + CHUNK - 1) // CHUNK
-    counter = np.zeros(1, np.int64)
+    nch = max(1, (nv + CHUNK - 1) // CHUNK)
+    rcount = np.zeros((nch, nty), np.int64)
+    rpair = np.zeros((nch, nty), np.int64)
+    counter[0] = 0
     for _w in prange(nworkers):
         while True:
             ch = _fetch_add(counter, np.int64(1))
@@ -425,58 +476,92 @@ def bin_tiles(valid, rec, colors, extras, width, height, nworkers):
                 sfeat[s, 3] = rec[i, R_Z]
                 for c in range(K):
                     sfeat[s, 4 + c] = extras[i, c]
-                str_[s, 0] = np.int32(rec[i, R_X0]) // TILE
-                str_[s, 1] = np.int32(rec[i, R_X1]) // TILE
-                str_[s, 2] = np.int32(rec[i, R_Y0]) // TILE
-                str_[s, 3] = np.int32(rec[i, R_Y1]) // TILE
+                tx0 = np.int32(rec[i, R_X0]) // TILE
+                tx1 = np.int32(rec[i, R_X1]) // TILE
+                ty0 = np.int32(rec[i, R_Y0]) // TILE
+                ty1 = np.int32(rec[i, R_Y1]) // TILE
+                str_[s, 0] = tx0
+                str_[s, 1] = tx1
+                str_[s, 2] = ty0
+                str_[s, 3] = ty1
                 sbase[s] = pair_start[jj]
-    # rows of tiles: depth-ordered lists of the Gaussians touching each row, and tile sizes (serial)
+                for r in range(ty0, ty1 + 1):
+                    rcount[ch, r] += 1
+                    rpair[ch, r] += tx1 - tx0 + 1
+    # rows of tiles: depth-ordered lists of the Gaussians touching each row (chunk ch's after those of chunks
+    # < ch) and where each row's pairs begin
     row_start = np.zeros(nty + 1, np.int64)
-    tile_count = np.zeros(ntiles, np.int64)
-    for s in range(nv):
-        tx0 = str_[s, 0]
-        tx1 = str_[s, 1]
-        for r in range(str_[s, 2], str_[s, 3] + 1):
-            row_start[r + 1] += 1
-            for t in range(r * ntx + tx0, r * ntx + tx1 + 1):
-                tile_count[t] += 1
+    row_pairs = np.zeros(nty + 1, np.int64)
     for r in range(nty):
-        row_start[r + 1] += row_start[r]
+        c = row_start[r]
+        p = row_pairs[r]
+        for ch in range(nch):
+            k = rcount[ch, r]
+            rcount[ch, r] = c
+            c += k
+            p += rpair[ch, r]
+        row_start[r + 1] = c
+        row_pairs[r + 1] = p
     row_list = np.empty(row_start[nty], np.int32)
-    cursor = row_start[:nty].copy()
-    for s in range(nv):
-        for r in range(str_[s, 2], str_[s, 3] + 1):
-            row_list[cursor[r]] = s
-            cursor[r] += 1
+    counter[0] = 0
+    for _w in prange(nworkers):
+        while True:
+            ch = _fetch_add(counter, np.int64(1))
+            if ch >= nch:
+                break
+            for s in range(ch * CHUNK, min(nv, (ch + 1) * CHUNK)):
+                for r in range(str_[s, 2], str_[s, 3] + 1):
+                    row_list[rcount[ch, r]] = s
+                    rcount[ch, r] += 1
+    npairs = row_pairs[nty]
     tile_start = np.empty(ntiles + 1, np.int64)
-    tile_start[0] = 0
-    for t in range(ntiles):
-        tile_start[t + 1] = tile_start[t] + tile_count[t]
-    npairs = tile_start[ntiles]
+    tile_start[ntiles] = npairs
+    tile_count = np.empty(ntiles, np.int64)
     pidx = np.empty(npairs, np.int32)
     slot_pair = np.empty(npairs, np.int64)
     tile_cost = np.zeros(ntiles, np.float64)
-    counter2 = np.zeros(1, np.int64)
+    counter[0] = 0
     for _w in prange(nworkers):
         while True:
-            r = _fetch_add(counter2, np.int64(1))
+            r = _fetch_add(counter, np.int64(1))
             if r >= nty:
                 break
-            _fill_row(r, row_start, row_list, str_, srec, sbase, tile_start, tile_count, pidx, slot_pair,
+            _fill_row(r, row_start, row_pairs, row_list, str_, srec, sbase, tile_start, tile_count, pidx, slot_pair,
                       tile_cost, ntx, width, height)
     return vis, tile_start, pidx, srec, sfeat, pair_start, slot_pair, tile_cost
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _fill_row(r, row_start, row_list, tr, crec, pair_start, tile_start, tile_count, pidx, slot_pair, tile_cost,
-              ntx, width, height):
-    """Append the Gaussians of tile row r to their tiles' pair lists (body of ``bin_tiles``). Here tr, crec
-    and pair_start are in depth order and row_list holds depth ranks, so reads go forward in memory."""
+def _pair_count(rec, i):
+    """Number of tiles that Gaussian i's pixel box touches."""
+    tx0 = np.int64(rec[i, R_X0]) // TILE
+    tx1 = np.int64(rec[i, R_X1]) // TILE
+    ty0 = np.int64(rec[i, R_Y0]) // TILE
+    ty1 = np.int64(rec[i, R_Y1]) // TILE
+    return (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _fill_row(r, row_start, row_pairs, row_list, tr, crec, pair_start, tile_start, tile_count, pidx, slot_pair,
+              tile_cost, ntx, width, height):
+    """Tile row r of ``bin_tiles``: its tiles' sizes and starts (the row's pairs begin at row_pairs[r]), then each
+    Gaussian of the row appended to its tiles' pair lists. Here tr, crec and pair_start are in depth order and
+    row_list holds depth ranks, so reads go forward in memory."""
     py0 = r * TILE
     py1 = min(py0 + TILE, height) - 1
     for t in range(ntx):
-        tile_count[r * ntx + t] = tile_start[r * ntx + t]
+        tile_count[r * ntx + t] = 0
     qend = row_start[r + 1]
+    for q in range(row_start[r], qend):
+        j = row_list[q]
+        for t in range(tr[j, 0], tr[j, 1] + 1):
+            tile_count[r * ntx + t] += 1
+    pos = row_pairs[r]
+    for t in range(ntx):
+        tile_start[r * ntx + t] = pos
+        c = tile_count[r * ntx + t]
+        tile_count[r * ntx + t] = pos
+        pos += c
     for q in range(row_start[r], qend):
         if q + PREFETCH_AHEAD < qend:  # the slots are scattered (Gaussian-major order): fetch ahead
             _prefetch(slot_pair, pair_start[row_list[q + PREFETCH_AHEAD]])
