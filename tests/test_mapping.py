@@ -154,6 +154,56 @@ def test_a_keyframes_exposure_is_solved_not_learned(sequence, gauge):
     assert m._fit_exposure(0, vignetted, out.alpha, image) == (gauge == "mean")
 
 
+
+@pytest.mark.parametrize("vignetting, exposure", [(True, True), (True, False), (False, True), (False, False)])
+def test_sensor_model_matches_vignetting_then_exposure_in_torch(vignetting, exposure):
+    """The compiled camera model against the mapper's torch chain (colour times 1 + v1 r2 + v2 r2^2, then
+    exp(a) c + b): values and gradients of the image, the vignetting and the exposure, float32 and float64
+    (gradcheck); the parameter sums do not depend on the thread count."""
+    import numba
+
+    from ggfslam.mapping.sensor_kernels import sensor_model
+
+    g = torch.Generator().manual_seed(5)
+    for dt, tol in ((torch.float32, 2e-5), (torch.float64, 1e-12)):
+        color = torch.rand(23, 31, 3, generator=g, dtype=dt)
+        r2 = torch.rand(23, 31, generator=g, dtype=dt) if vignetting else None
+        v = torch.tensor([-0.3, 0.1], dtype=dt) if vignetting else None
+        e = torch.tensor([0.1, -0.2, 0.05, 0.02, -0.01, 0.03], dtype=dt) if exposure else None
+        gy = torch.randn(23, 31, 3, generator=g, dtype=dt)
+
+        def reference(c, v, e):
+            x = c * (1.0 + v[0] * r2 + v[1] * r2 * r2)[..., None] if v is not None else c
+            return x * torch.exp(e[:3]) + e[3:] if e is not None else x
+
+        leaves = [t.clone().requires_grad_() for t in (color, v, e) if t is not None]
+        it = iter(leaves)
+        c1, v1, e1 = next(it), (next(it) if vignetting else None), (next(it) if exposure else None)
+        want = reference(c1, v1, e1)
+        g_want = torch.autograd.grad(want, leaves, gy)
+        leaves2 = [t.clone().requires_grad_() for t in leaves]
+        it = iter(leaves2)
+        c2, v2, e2 = next(it), (next(it) if vignetting else None), (next(it) if exposure else None)
+        got = sensor_model(c2, r2, v2, e2)
+        assert got.dtype == dt
+        torch.testing.assert_close(got, want, rtol=tol, atol=tol)
+        g_got = torch.autograd.grad(got, leaves2, gy)
+        for a, b in zip(g_got, g_want):
+            torch.testing.assert_close(a, b, rtol=tol * 10, atol=tol * 10)
+        if dt == torch.float64:
+            assert torch.autograd.gradcheck(lambda *xs: sensor_model(xs[0], r2, *(
+                [xs[1]] if vignetting else [None]), *([xs[-1]] if exposure else [None])), tuple(leaves2))
+            threads = numba.get_num_threads()
+            try:
+                numba.set_num_threads(1)
+                g_one = torch.autograd.grad(sensor_model(c2, r2, v2, e2), leaves2, gy)
+            finally:
+                numba.set_num_threads(threads)
+            assert all(torch.equal(a, b) for a, b in zip(g_one, g_got))
+    with pytest.raises(ValueError, match="r2 and vignette"):
+        sensor_model(color, None, torch.zeros(2), None)
+
+
 def test_covered_moments_are_the_masked_sums():
     """The exposure fit's compiled statistics equal numpy's float64 sums over the covered pixels, whatever the
     thread count; mismatched shapes are refused with their shapes named."""

@@ -45,6 +45,7 @@ from ggfslam.mapping.keyframe_store import KeyframeStore, scaled_intrinsics
 from ggfslam.mapping.exposure_kernels import covered_moments
 from ggfslam.mapping.loss_kernels import normal_loss_from_depth
 from ggfslam.mapping.losses import depth_loss, depth_spread_loss, photometric_loss
+from ggfslam.mapping.sensor_kernels import sensor_model
 from ggfslam.render.api import rasterize
 from ggfslam.render.plane_depth import PLANE_CHANNELS, pixel_rays, plane_channels, plane_depth
 from ggfslam.render.types import Intrinsics, RenderOutput, RenderSettings
@@ -377,10 +378,12 @@ class Mapper:
             l_morph = self.ggf.morph(g) if self.ggf is not None and self.ggf_cfg.lambda_morph > 0 else torch.zeros(())
             spread = c.lambda_depth_spread > 0
             out, moments = self._rasterize(g, intr, T_wc, None if p2d is None else p2d.detach(), spread)
-            vignetted = self._vignetted(out.color, intr)  # [H, W, 3]
             if c.exposure_closed_form:
-                self._fit_exposure(kf_id, vignetted.detach(), out.alpha.detach(), rgb)
-            color = self._expose(vignetted, kf_id)
+                with torch.no_grad():
+                    self._fit_exposure(kf_id, self._vignetted(out.color.detach(), intr), out.alpha.detach(), rgb)
+            # _expose(_vignetted(.)) in one compiled pass (sensor_kernels.py)
+            color = sensor_model(out.color, self._ray_r2(intr) if c.vignetting else None,
+                                 self.vignette if c.vignetting else None, self._exposure_of(kf_id))
             gt_rgb = torch.from_numpy(np.ascontiguousarray(rgb))
             gt_depth = torch.from_numpy(np.ascontiguousarray(depth))
             l_photo = photometric_loss(color, gt_rgb, c.lambda_ssim)
@@ -457,13 +460,19 @@ class Mapper:
 
     def vignetting_gain(self, intr: Intrinsics) -> torch.Tensor:
         """The camera's learned vignetting gain [H, W] at intrinsics intr (1 at the optical axis)."""
+        r2 = self._ray_r2(intr)
+        return 1.0 + self.vignette[0] * r2 + self.vignette[1] * r2 * r2
+
+    def _ray_r2(self, intr: Intrinsics) -> torch.Tensor:
+        """Squared distance [H, W] of each pixel's ray from the optical axis on the z = 1 plane (kept for the two
+        training levels, not for each random crop)."""
         r2 = self._r2_cache.get(intr)
         if r2 is None:
             rays = pixel_rays(intr)  # [H, W, 3]
             r2 = rays[..., 0] ** 2 + rays[..., 1] ** 2
-            if intr in (self.store.level_intrinsics(0), self.store.level_intrinsics(1)):  # not each random crop
+            if intr in (self.store.level_intrinsics(0), self.store.level_intrinsics(1)):
                 self._r2_cache[intr] = r2
-        return 1.0 + self.vignette[0] * r2 + self.vignette[1] * r2 * r2
+        return r2
 
     def sensor_image(self, color: torch.Tensor, intr: Intrinsics, kf_id: int) -> torch.Tensor:
         """A render [H, W, 3] at intrinsics intr as the camera records it: vignetted, then keyframe ``kf_id``'s
@@ -477,13 +486,14 @@ class Mapper:
     def _expose(self, color: torch.Tensor, kf_id: int | None) -> torch.Tensor:
         """Apply a keyframe's affine brightness (or with ``REFERENCE_EXPOSURE`` the reference one) to a rendered
         image [H, W, 3] or colours [N, 3]."""
-        if kf_id == REFERENCE_EXPOSURE:
-            e = self.reference_exposure()
-        elif kf_id is None or kf_id not in self.exposure_row or not self.cfg.exposure:
-            e = None
-        else:
-            e = self.exposure[self.exposure_row[kf_id]]
+        e = self.reference_exposure() if kf_id == REFERENCE_EXPOSURE else self._exposure_of(kf_id)
         return color if e is None else color * torch.exp(e[:3]) + e[3:]
+
+    def _exposure_of(self, kf_id: int | None) -> torch.Tensor | None:
+        """Keyframe kf_id's exposure [6] (log gains, offsets; a view of the parameter), None where it has none."""
+        if kf_id is None or kf_id not in self.exposure_row or not self.cfg.exposure:
+            return None
+        return self.exposure[self.exposure_row[kf_id]]
 
     @torch.no_grad()
     def _fit_exposure(self, kf_id: int, vignetted: torch.Tensor, alpha: torch.Tensor, rgb: np.ndarray,
