@@ -45,11 +45,13 @@ def normal_loss_forward(z, gt, fx, fy, cx, cy, wdu, wdv):
         y0 = (v - cy) / fy
         for i in range(n):
             u = i + 1
-            z0, g0, g1, g2 = zc[i], g0s[i], g1s[i], g2s[i]
-            a0, a1, a2, b0, b1, b2 = pixel_differences(zl[i], zr[i], zt[i], zb[i], u, v, fx, fy, cx, cy)  # du, dv
+            # float64 from here on, whatever the inputs' type (float32 inputs give the float64 results exactly)
+            z0, g0, g1, g2 = np.float64(zc[i]), np.float64(g0s[i]), np.float64(g1s[i]), np.float64(g2s[i])
+            dl, dr, dt, db = np.float64(zl[i]), np.float64(zr[i]), np.float64(zt[i]), np.float64(zb[i])
+            a0, a1, a2, b0, b1, b2 = pixel_differences(dl, dr, dt, db, u, v, fx, fy, cx, cy)  # du, dv
             c0, c1, c2 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
             sq = c0 * c0 + c1 * c1 + c2 * c2
-            ok = (z0 > 0 and zl[i] > 0 and zr[i] > 0 and zt[i] > 0 and zb[i] > 0 and sq > 0
+            ok = (z0 > 0 and dl > 0 and dr > 0 and dt > 0 and db > 0 and sq > 0
                   and not (g0 == 0 and g1 == 0 and g2 == 0))
             nrm = np.sqrt(sq)
             n0, n1, n2 = c0 / nrm, c1 / nrm, c2 / nrm
@@ -107,8 +109,10 @@ def normal_loss_backward(wdu, wdv, scale, fx, fy, cx, cy, g_z):
 class _NormalLoss(torch.autograd.Function):
     @staticmethod
     def forward(ctx, depth, gt, intr):
-        z = depth.detach().to(torch.float64).contiguous().numpy()
-        g = gt.detach().permute(2, 0, 1).to(torch.float64).contiguous().numpy()  # [3, H, W]
+        # float32 or float64 as given: the kernel computes in float64 (no float64 copies, ~1 ms a step at 640x480)
+        dt = depth.dtype if depth.dtype in (torch.float32, torch.float64) else torch.float64
+        z = depth.detach().to(dt).contiguous().numpy()
+        g = gt.detach().to(dt).permute(2, 0, 1).contiguous().numpy()  # [3, H, W]
         H, W = z.shape
         wdu, wdv = np.empty((3, H, W + 2)), np.empty((3, H, W + 2))
         if H >= 3 and W >= 3:
@@ -122,7 +126,8 @@ class _NormalLoss(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad):
         wdu, wdv, count, intr, dtype = ctx.save
-        g_z = np.empty(wdu.shape[1:2] + (wdu.shape[2] - 2,))
+        # written in the depth's type (a float64 sum rounded on the store, as .to(dtype) would)
+        g_z = np.empty(wdu.shape[1:2] + (wdu.shape[2] - 2,), np.float32 if dtype == torch.float32 else np.float64)
         normal_loss_backward(wdu, wdv, float(grad) / count, intr.fx, intr.fy, intr.cx, intr.cy, g_z)
         return torch.from_numpy(g_z).to(dtype), None, None
 
