@@ -302,3 +302,12 @@ def test_gradient_statistics_are_in_ndc_units_and_count_visible_children_only():
     assert (dc.stats.visits == 1).all()
     opa = torch.zeros(m.n_anchors).index_add_(0, g.anchor_index, g.opacities.detach()) / m.k
     torch.testing.assert_close(dc.stats.opacity_sum, opa)
+    # a second render of part of the map, without gradients: sums accumulate, gradient statistics stay
+    before = dc.stats.grad_sum.clone()
+    mask[::2] = False
+    part = m.decode(np.array([0.0, 0.0, -3.0]), mask)
+    dc.accumulate(part, torch.ones(len(part), dtype=torch.bool), None, mask, image_size=(320, 240))
+    assert torch.equal(dc.stats.visits, 1.0 + mask.float())
+    opa2 = torch.zeros(m.n_anchors).index_add_(0, part.anchor_index, part.opacities.detach()) / m.k
+    torch.testing.assert_close(dc.stats.opacity_sum, opa + opa2)
+    assert torch.equal(dc.stats.grad_sum, before)

@@ -22,10 +22,34 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from numba import njit
 
 from ggfslam.gaussians.anchor_map import PER_ANCHOR_PARAMS, AnchorMap, voxel_keys
 from ggfslam.gaussians.decoders import DecodedGaussians
 from ggfslam.gaussians.optim import replace_param
+
+
+@njit(cache=True, nogil=True)
+def _accumulate(visits, mask, opacity_sum, anchor_index, opac, k, grad_sum, grad_count, child_index, visible, g2d, sx,
+                sy, has_grad):
+    """``DensityControl.accumulate``'s sums in place (float32, children in order): visits [A] += mask [A];
+    opacity_sum [A] += the anchor's children's opacities [G] summed, over k; with has_grad, per child c:
+    grad_sum[c] += |g2d * (sx, sy)| and grad_count[c] += 1 where visible (serial: children share anchors)."""
+    A = visits.shape[0]
+    opa = np.zeros(A, np.float32)
+    for i in range(anchor_index.shape[0]):
+        opa[anchor_index[i]] += opac[i]
+    for a in range(A):
+        visits[a] += np.float32(mask[a])
+        opacity_sum[a] += opa[a] / k
+    if has_grad:
+        for i in range(child_index.shape[0]):
+            w = np.float32(visible[i])
+            x = g2d[i, 0] * sx
+            y = g2d[i, 1] * sy
+            c = child_index[i]
+            grad_sum[c] += np.sqrt(x * x + y * y) * w
+            grad_count[c] += w
 
 
 @dataclass
@@ -66,17 +90,12 @@ class DensityControl:
         """Add one render: decoded children g, their visibility [G] and 2D-mean gradient [G, 2] in pixels
         of an image of ``image_size`` (width, height)."""
         s, k = self.stats, self.map.k
-        # masks multiplied in rather than boolean indexing: the same sums (adding 0 changes nothing) for half the
-        # time (1.4 against 2.8 ms at 100k children)
-        s.visits += anchor_mask
-        opa = torch.zeros(self.map.n_anchors)  # [A], zero outside the decoded anchors (all in anchor_mask)
-        opa.index_add_(0, g.anchor_index, g.opacities.detach())
-        s.opacity_sum += opa / k
-        if grad2d is not None:
-            w = visible.to(grad2d.dtype)  # [G] 1 where the child was rendered
-            ndc = (grad2d * torch.tensor([image_size[0] / 2, image_size[1] / 2])).norm(dim=1)  # [G]
-            s.grad_sum.index_add_(0, g.child_index, ndc * w)
-            s.grad_count.index_add_(0, g.child_index, w)
+        # one compiled pass (in torch: masks, three index_adds and a norm, 1.1 ms a step at 100k children)
+        g2d = np.zeros((0, 2), np.float32) if grad2d is None else grad2d.detach().float().contiguous().numpy()
+        _accumulate(s.visits.numpy(), anchor_mask.numpy(), s.opacity_sum.numpy(), g.anchor_index.numpy(),
+                    g.opacities.detach().float().contiguous().numpy(), np.float32(k), s.grad_sum.numpy(),
+                    s.grad_count.numpy(), g.child_index.numpy(), visible.numpy(), g2d, np.float32(image_size[0] / 2),
+                    np.float32(image_size[1] / 2), grad2d is not None)
 
     @torch.no_grad()
     def grow(self, opt: torch.optim.Optimizer | None) -> int:
