@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import torch
 
-from ggfslam.gaussians.anchor_map import PER_ANCHOR_PARAMS, AnchorMap, voxel_keys
+from ggfslam.gaussians.anchor_map import PER_ANCHOR_PARAMS, AnchorMap, spheres_in_view, voxel_keys
 from ggfslam.gaussians.decoders import ChildDecoder
 from ggfslam.gaussians.density import DensityControl
 from ggfslam.gaussians.optim import make_adam, replace_param
@@ -94,6 +94,34 @@ def test_view_independent_decoder_equals_its_mlps_on_zero_view_inputs():
         torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
     for i in (0, 4, 8):  # each MLP's first-layer weight [8, 10]: nothing reaches the view columns
         assert float(g_got[i][:, 6:].abs().max()) == 0.0 and float(g_got[i][:, :6].abs().max()) > 0.0
+
+
+
+def test_anchor_culling_matches_its_torch_reference():
+    """The compiled frustum test of anchor spheres against spheres_in_view in float64 (the same decisions), for
+    anchors around, behind and straddling the camera; the centre-only cull would lose spheres reaching in."""
+    from ggfslam.geometry.se3 import so3_exp
+    from ggfslam.render.types import Intrinsics
+
+    rng = np.random.default_rng(7)
+    m = AnchorMap(0.05, 4, 8, 8, False, 0, 1)
+    pts = rng.uniform(-4.0, 4.0, (4000, 3))
+    vals, _ = m.new_anchor_values(pts, rng.random((4000, 3)))
+    m.append(vals)
+    intr = Intrinsics(fx=300.0, fy=300.0, cx=160.0, cy=120.0, width=320, height=240)
+    reach = torch.from_numpy(rng.uniform(0.01, 0.6, m.n_anchors).astype(np.float32))
+    for seed in range(3):
+        T = np.eye(4)
+        T[:3, :3] = so3_exp(np.random.default_rng(seed).normal(scale=0.5, size=3))
+        T[:3, 3] = np.random.default_rng(seed + 10).normal(scale=0.5, size=3)
+        got = m.visible_anchors(T, intr, 0.05, reach=reach)
+        want = spheres_in_view(m.anchors.double(), reach.double(), torch.from_numpy(T), intr, 0.05)
+        assert torch.equal(got, want)
+        assert 0 < int(got.sum()) < m.n_anchors
+        pc = m.anchors.double() @ torch.from_numpy(T[:3, :3]).T + torch.from_numpy(T[:3, 3])
+        u = intr.fx * pc[:, 0] / pc[:, 2] + intr.cx
+        centre_in = (pc[:, 2] > 0.05) & (u >= 0) & (u < intr.width)
+        assert bool((got & ~centre_in).any())  # spheres whose centre is outside but which reach into the image
 
 
 def test_what_the_viewpoint_changes_in_each_decoder():

@@ -30,6 +30,7 @@ from typing import Callable
 
 import numpy as np
 import torch
+from numba import njit, prange
 from torch import nn
 
 from ggfslam.gaussians.child_head import SurfelSpec
@@ -49,6 +50,46 @@ def voxel_keys(points: np.ndarray, voxel: float) -> np.ndarray:
     if ijk.size and (ijk.min() < 0 or ijk.max() >= (1 << 21)):
         raise ValueError(f"points beyond the voxel grid range (|x| > {voxel * (1 << 20):.0f} m)")
     return (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]
+
+
+def spheres_in_view(centres: torch.Tensor, reach: torch.Tensor, T_cw: torch.Tensor, intr, near: float = 0.05,
+                    margin: float = 0.02) -> torch.Tensor:
+    """[A] bool: the spheres (centres [A, 3] world, radii reach [A]) that meet the view frustum of a camera at
+    world-to-camera T_cw [4, 4] (image widened by ``margin`` of its size), or straddle the near plane while ahead of
+    the camera. Plain torch in the inputs' dtype: the reference of the compiled ``AnchorMap.visible_anchors``."""
+    pc = centres @ T_cw[:3, :3].T + T_cw[:3, 3]  # [A, 3] camera frame
+    z = pc[:, 2]
+    ahead = z - reach  # the sphere's nearest depth
+    zs = ahead.clamp_min(1e-6)
+    # a sphere entirely in front projects within f r / (z - r) of its centre's projection
+    u = intr.fx * pc[:, 0] / z.clamp_min(1e-6) + intr.cx
+    v = intr.fy * pc[:, 1] / z.clamp_min(1e-6) + intr.cy
+    ru, rv = intr.fx * reach / zs + margin * intr.width, intr.fy * reach / zs + margin * intr.height
+    inside = (u > -ru) & (u < intr.width + ru) & (v > -rv) & (v < intr.height + rv)
+    # a sphere that reaches behind the near plane but has part in front: keep it if it is ahead of the camera
+    straddle = (ahead <= near) & (z + reach > near) & (pc[:, :2].norm(dim=1) < z.abs() + reach + 1.0)
+    return (z + reach > near) & (inside & (ahead > near) | straddle)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _spheres_in_view(centres, reach, R, t, fx, fy, cx, cy, width, height, near, margin, out):
+    """``spheres_in_view`` per sphere in float64 (R [3, 3], t [3] world-to-camera) into out [A] bool."""
+    for i in prange(centres.shape[0]):
+        px, py, pz = np.float64(centres[i, 0]), np.float64(centres[i, 1]), np.float64(centres[i, 2])
+        x = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + t[0]
+        y = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + t[1]
+        z = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + t[2]
+        r = np.float64(reach[i])
+        ahead = z - r
+        zs = max(ahead, 1e-6)
+        zc = max(z, 1e-6)
+        u = fx * x / zc + cx
+        v = fy * y / zc + cy
+        ru = fx * r / zs + margin * width
+        rv = fy * r / zs + margin * height
+        inside = u > -ru and u < width + ru and v > -rv and v < height + rv
+        straddle = ahead <= near and z + r > near and np.sqrt(x * x + y * y) < abs(z) + r + 1.0
+        out[i] = z + r > near and ((inside and ahead > near) or straddle)
 
 
 class AnchorMap(nn.Module):
@@ -227,24 +268,17 @@ class AnchorMap(nn.Module):
         """Anchors [A] bool whose children can reach the image: the sphere of ``reach()`` around the anchor meets
         the view frustum (widened by ``margin`` of the image size). Anchors culled by their centre alone (as
         Scaffold-GS does) left children that project into the image untrained and unseen in training, but drawn
-        by any renderer of the whole map: floaters in the baked file."""
+        by any renderer of the whole map: floaters in the baked file. Compiled (``spheres_in_view``)."""
         if self.n_anchors == 0:
             return torch.zeros(0, dtype=torch.bool)
-        R = torch.from_numpy(T_cw[:3, :3].astype(np.float32))
-        t = torch.from_numpy(T_cw[:3, 3].astype(np.float32))
-        pc = self.anchors @ R.T + t  # [A, 3] camera frame
         r = self.reach() if reach is None or len(reach) != self.n_anchors else reach  # [A]
-        z = pc[:, 2]
-        ahead = z - r  # the sphere's nearest depth
-        zs = ahead.clamp_min(1e-6)
-        # a sphere entirely in front projects within f r / (z - r) of its centre's projection
-        u = intr.fx * pc[:, 0] / z.clamp_min(1e-6) + intr.cx
-        v = intr.fy * pc[:, 1] / z.clamp_min(1e-6) + intr.cy
-        ru, rv = intr.fx * r / zs + margin * intr.width, intr.fy * r / zs + margin * intr.height
-        inside = (u > -ru) & (u < intr.width + ru) & (v > -rv) & (v < intr.height + rv)
-        # a sphere that reaches behind the near plane but has part in front: keep it if it is ahead of the camera
-        straddle = (ahead <= near) & (z + r > near) & (pc[:, :2].norm(dim=1) < z.abs() + r + 1.0)
-        return (z + r > near) & (inside & (ahead > near) | straddle)
+        out = np.empty(self.n_anchors, np.bool_)
+        T = np.asarray(T_cw, np.float64)
+        _spheres_in_view(self.anchors.contiguous().numpy(), r.detach().contiguous().numpy(),
+                         np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), float(intr.fx),
+                         float(intr.fy), float(intr.cx), float(intr.cy), float(intr.width), float(intr.height),
+                         float(near), float(margin), out)
+        return torch.from_numpy(out)
 
     def decode(self, cam_center: np.ndarray | torch.Tensor, mask: torch.Tensor | None = None,
                surfels: Callable[[torch.Tensor], SurfelSpec | None] | None = None,
