@@ -587,8 +587,8 @@ class GGFConfig(_Section):
     2.12), sensor 3.44 -> 3.39 cm (off: 3.53), 21.60 -> 21.56 dB; fr3/cabinet depth L1 3.90 -> 3.80 cm,
     23.44 -> 23.53 dB, wall 318 -> 334 s; 7-Scenes kitchen (registered config) 2.36 -> 2.31 cm, 27.05 -> 27.09 dB,
     wall 307 -> 415 s (real maps overlap many barely opaque Gaussians: the extra channels cost more there).
-    ``configs/replica/office0_rendered.yaml`` turns it on: over three seeds there, depth L1 0.443 cm against 0.494
-    with the field off and 0.518 with the field on without it (2026-12-06)."""
+    ``configs/replica/office0_rendered.yaml`` turns it on: over four seeds there, depth L1 0.445 cm against 0.501
+    with the field off and 0.525 with the field on without it (2026-12-06)."""
     lambda_morph: float = 0.1
     """Weight of L_morph in the mapping loss."""
     lambda_dir: float = 1.0
