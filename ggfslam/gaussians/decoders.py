@@ -45,6 +45,11 @@ class DecodedGaussians:
     def __len__(self) -> int:
         return int(self.means.shape[0])
 
+    def raw_shape(self) -> tuple | None:
+        """(raw_cov [M, k, 7], log_scale [M, 3], local [G] anchor row of each child, k): the decoder's raw shape
+        output behind these children (what ``unshaped`` reads), None for children without one (a bake)."""
+        return self._unshaped
+
     def unshaped(self, sel: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The decoder's own rotation [S, 4] and scales [S, 3] of children ``sel`` [S] before AMR made surfels of
         them (differentiable; what L_morph acts on)."""

@@ -110,8 +110,9 @@ class GeometricGaussianField:
         c = self.cfg
         n = self.geom.normals.index_select(0, g.anchor_index[idx])
         eps = c.surfel_eps * self.voxel_size
-        if g._unshaped is not None:  # the compiled loss on the raw output (parity-tested against morph_loss)
-            raw_cov, log_scale, local, k = g._unshaped
+        raw = g.raw_shape()
+        if raw is not None:  # the compiled loss on the raw output (parity-tested against morph_loss)
+            raw_cov, log_scale, local, k = raw
             return morph_loss_raw(raw_cov, log_scale, local[idx], g.child_index[idx] % k, n, eps, self.voxel_size,
                                   c.lambda_dir, c.lambda_thin)
         quats, scales = g.unshaped(idx)

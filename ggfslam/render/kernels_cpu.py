@@ -476,10 +476,7 @@ def bin_tiles(valid, rec, colors, extras, width, height, nworkers):
                 sfeat[s, 3] = rec[i, R_Z]
                 for c in range(K):
                     sfeat[s, 4 + c] = extras[i, c]
-                tx0 = np.int32(rec[i, R_X0]) // TILE
-                tx1 = np.int32(rec[i, R_X1]) // TILE
-                ty0 = np.int32(rec[i, R_Y0]) // TILE
-                ty1 = np.int32(rec[i, R_Y1]) // TILE
+                tx0, tx1, ty0, ty1 = _tile_range(rec, i)
                 str_[s, 0] = tx0
                 str_[s, 1] = tx1
                 str_[s, 2] = ty0
@@ -532,12 +529,16 @@ def bin_tiles(valid, rec, colors, extras, width, height, nworkers):
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _tile_range(rec, i):
+    """Tiles (tx0, tx1, ty0, ty1), inclusive, that Gaussian i's pixel box touches."""
+    return (np.int64(rec[i, R_X0]) // TILE, np.int64(rec[i, R_X1]) // TILE, np.int64(rec[i, R_Y0]) // TILE,
+            np.int64(rec[i, R_Y1]) // TILE)
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _pair_count(rec, i):
     """Number of tiles that Gaussian i's pixel box touches."""
-    tx0 = np.int64(rec[i, R_X0]) // TILE
-    tx1 = np.int64(rec[i, R_X1]) // TILE
-    ty0 = np.int64(rec[i, R_Y0]) // TILE
-    ty1 = np.int64(rec[i, R_Y1]) // TILE
+    tx0, tx1, ty0, ty1 = _tile_range(rec, i)
     return (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
 
 
