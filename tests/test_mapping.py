@@ -15,7 +15,7 @@ from ggfslam.errors import ConfigError
 from ggfslam.eval.image import depth_l1_cm, psnr
 from ggfslam.gaussians.anchor_map import voxel_keys
 from ggfslam.mapping.keyframe_store import KeyframeStore, resize_rgbd, scaled_intrinsics
-from ggfslam.mapping.losses import depth_loss, normal_loss, photometric_loss
+from ggfslam.mapping.losses import depth_loss, normal_loss, opacity_entropy, photometric_loss
 from ggfslam.mapping.mapper import Mapper
 from ggfslam.mapping.worker import MappingWorker
 from ggfslam.render.types import RenderSettings
@@ -353,6 +353,18 @@ def test_losses_on_hand_made_inputs():
     tilted = n.clone()
     tilted[..., 0], tilted[..., 2] = np.sin(0.5), -np.cos(0.5)
     assert float(normal_loss(tilted, n)) == pytest.approx(1 - np.cos(0.5), abs=1e-6)
+
+
+def test_opacity_entropy_value_and_gradient():
+    o = torch.tensor([0.5, 0.1, 0.9, 0.999], dtype=torch.float64, requires_grad=True)
+    h = [-(p * np.log(p) + (1 - p) * np.log(1 - p)) for p in (0.5, 0.1, 0.9, 0.999)]
+    assert float(opacity_entropy(o.detach())) == pytest.approx(np.mean(h), rel=1e-12)
+    assert float(opacity_entropy(torch.tensor([0.0, 1.0]))) == pytest.approx(0.0, abs=1e-4)  # clamped, finite
+    opacity_entropy(o).backward()
+    # d/do = ln((1 - o) / o) / n: zero at 0.5, pushing each opacity away from it
+    np.testing.assert_allclose(o.grad.numpy(), [np.log((1 - p) / p) / 4 for p in (0.5, 0.1, 0.9, 0.999)], rtol=1e-9,
+                               atol=1e-12)
+    assert torch.autograd.gradcheck(opacity_entropy, (o.detach().clone().requires_grad_(True),))
 
 
 def test_keyframe_budget_follows_the_frames_between_keyframes(tmp_path, sequence):

@@ -52,3 +52,10 @@ def depth_spread_loss(depth_raw: torch.Tensor, depth_sq: torch.Tensor, alpha: to
     ratio = a * depth_sq.double() / torch.where(ok, depth_raw.double(), torch.ones_like(a)) ** 2
     spread = torch.where(ok, ratio - 1, torch.zeros_like(a))
     return (spread.sum() / ok.sum().clamp_min(1)).to(alpha.dtype)
+
+
+def opacity_entropy(opacity: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
+    """Mean binary entropy -o ln o - (1 - o) ln(1 - o) of opacities [G] in (0, 1): smallest where each Gaussian is
+    either opaque or gone (o -> 0 sends its child below the decoder's mask)."""
+    o = opacity.clamp(eps, 1.0 - eps)
+    return -(o * torch.log(o) + (1.0 - o) * torch.log1p(-o)).mean()

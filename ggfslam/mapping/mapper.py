@@ -44,7 +44,7 @@ from ggfslam.ggf import GeometricGaussianField, planarity_colors
 from ggfslam.mapping.keyframe_store import KeyframeStore, scaled_intrinsics
 from ggfslam.mapping.exposure_kernels import covered_moments
 from ggfslam.mapping.loss_kernels import normal_loss_from_depth
-from ggfslam.mapping.losses import depth_loss, depth_spread_loss, photometric_loss
+from ggfslam.mapping.losses import depth_loss, depth_spread_loss, opacity_entropy, photometric_loss
 from ggfslam.mapping.sensor_kernels import sensor_model
 from ggfslam.render.api import rasterize
 from ggfslam.render.plane_depth import PLANE_CHANNELS, pixel_rays, plane_channels, plane_depth
@@ -401,6 +401,8 @@ class Mapper:
                 s0, s1, s2 = g.scales.unbind(1)  # prod(dim=1)'s backward: 1.1 ms at 100k children, this 0.4
                 vol = (s0 * s1 * s2).mean() / self.map.voxel_size ** 3
                 loss = loss + c.lambda_scale * vol
+            if c.lambda_opacity_entropy > 0:
+                loss = loss + c.lambda_opacity_entropy * opacity_entropy(g.opacities)
             if self.ggf is not None and self.ggf_cfg.lambda_morph > 0:
                 loss = loss + self.ggf_cfg.lambda_morph * l_morph
             loss.backward()
