@@ -436,10 +436,11 @@ class MappingConfig(_Section):
     """Weight of the volume regulariser (mean product of child scales / voxel^3), as in Scaffold-GS."""
     lambda_opacity_entropy: float = 0.002
     """Weight of the children's mean opacity entropy (``losses.opacity_entropy``): pushes each child to opaque or
-    off, so fewer, more opaque Gaussians make the map (0 = off). 0 -> 0.002 (2026-12-06, each run alone, one seed):
+    off, so fewer, more opaque Gaussians make the map (0 = off). 0 -> 0.002 (2026-12-06, each run alone, seed 0):
     7-Scenes kitchen (registered config) 27.62 -> 27.67 dB, depth L1 2.29 -> 2.33 cm, 138k -> 80k Gaussians, mapper
     8.6 -> 10.2 steps/s, wall 317 -> 271 s; fr3/cabinet 25.60 -> 25.50 dB, 3.03 -> 3.07 cm, 147k -> 59k, 7.4 -> 8.5
-    steps/s, 222 -> 194 s; Replica office0 35.20 -> 35.29 dB, 0.44 cm both; the demo 22.73 -> 22.66 dB. At 0.005
+    steps/s, 222 -> 194 s; Replica office0 35.20 -> 35.29 dB, 0.44 cm both; the demo 22.73 -> 22.66 dB; with
+    ``runtime.seed: 1`` kitchen 27.87 -> 28.01 dB, 349 -> 287 s, cabinet 25.33 -> 25.47 dB, 261 -> 208 s. At 0.005
     the real sequences lose 0.35-0.7 dB, at 0.02 2.3 dB (kitchen)."""
     exposure: bool = True
     """Learn a per-keyframe affine brightness (exp(a) * c + b per channel)."""
