@@ -9,7 +9,7 @@ focused on it, then the final refinement), once per pose source given with ``--p
 Each map is scored like a run (PSNR/SSIM/depth L1 of every ``mapping.eval_stride``-th frame rendered from the
 same pose source, and separately at the keyframes). If the ground truth scores far better, the estimated poses
 limit the map; if it scores worse, the ground truth disagrees with the images (e.g. 7-Scenes' KinectFusion
-poses follow the depth camera, which is not registered to the colour camera; see README).
+poses follow the depth camera, which is not registered to the colour camera; see docs/MEASUREMENTS.md).
 
 With ``--subset N --steps A,B,..`` it asks instead whether the step budget limits the map: only N consecutive
 keyframes from the middle of the run are mapped (seeded, no focused steps), trained by error alone, and scored at

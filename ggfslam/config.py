@@ -207,7 +207,7 @@ class TrackingConfig(_Section):
     keypoint, several times a Kinect's noise. The default suits real sensors, whose colour and depth disagree by more
     than their noise (registration, timing): on the 7-Scenes kitchen 0.5 lowered the ATE 4.86 -> 3.81 cm but its map
     lost 1.2 dB. Exactly registered depth earns more (the synthetic and Replica configs set 0.5: Replica ATE
-    0.72 -> 0.51 cm); see README."""
+    0.72 -> 0.51 cm); see docs/MEASUREMENTS.md."""
     match_radius: float = 12.0
     """Search radius (px, at pyramid level 0) when matching projected map points."""
     match_max_distance: int = 64
@@ -227,12 +227,12 @@ class TrackingConfig(_Section):
     median sharpness (variance of the Laplacian) of the last ``2 * keyframe_max_frames`` frames, for at most
     ``keyframe_max_frames`` more frames: motion-blurred keyframes blur the map. Keyframes that tracking needs
     (too few points tracked, moved or turned too far) never wait. 0 = off (at 0.9 on the 7-Scenes kitchen, whose blur
-    lasts stretches rather than single frames: no gain, see README)."""
+    lasts stretches rather than single frames: no gain, see docs/MEASUREMENTS.md)."""
     final_keyframe_after: int = 2
     """The input's last frame becomes a keyframe when it was tracked and at least this many frames followed the last
     keyframe (0 = never). Every frame is scored, but the map trains on keyframes only: what the camera saw after the
     last keyframe was never mapped. On the demo's orbit (keyframe 108 of 120) those frames left the map empty where
-    9% of the last frame's depth was (see README, depth L1)."""
+    9% of the last frame's depth was (see docs/MEASUREMENTS.md, depth L1)."""
     keyframe_tracked_ratio: float = 0.75
     """Insert a keyframe when fewer than this fraction of the reference keyframe's map points are tracked."""
     keyframe_translation: float = 0.15
@@ -474,7 +474,8 @@ class MappingConfig(_Section):
     """Learn the camera's vignetting, one radial gain shared by all keyframes: a render is multiplied by
     ``1 + v1 r^2 + v2 r^4`` (``r`` the pixel's distance from the optical axis on the z = 1 plane) before the
     keyframe's exposure, so the map holds the scene's colours and the image corners their darkening. Renders
-    with an exposure (evaluation, the viewer) carry it; the baked PLY does not. fr3/cabinet +0.46 dB, see README."""
+    with an exposure (evaluation, the viewer) carry it; the baked PLY does not. fr3/cabinet +0.46 dB, see
+    docs/MEASUREMENTS.md."""
     lr_vignetting: float = 0.003
     """Adam step of the two vignetting coefficients."""
     densify_every: int = 100
@@ -924,15 +925,38 @@ def load_config(path: str | Path, overrides: list[str] | None = None, defaults: 
     return config_from_dict(data, str(path))
 
 
+SENSOR_KINDS = ("tum", "scannet", "folder")
+"""Folder layouts of recorded sensor data (Replica's is of rendered images)."""
+
+SENSOR_MAPPING = {"iterations_per_keyframe": 12, "iterations_per_frame": 1.5, "final_iterations": 1000,
+                  "coarse_fraction": 0.7, "n_offsets": 8}
+"""The mapping schedule ``folder_config`` lays beneath the overrides on sensor data: fewer steps while frames arrive,
+more in the final refinement over the keyframes the map fits worst, 70% of the steps at half size, eight children per
+anchor (the settings of the bundled TUM and 7-Scenes configs). On the two real folders of ``../shared/data``, built-in
+defaults -> this (2026-12-06, each run alone, all frames at 640x480): fr3/cabinet 24.75 -> 25.63 dB, depth L1
+3.09 -> 3.01 cm, 164 -> 189 s; 7-Scenes kitchen (unregistered) 25.54 -> 26.20 dB, 4.83 -> 4.68 cm, 259 -> 220 s;
+ATE unchanged (mapping does not move the poses). On rendered Replica it lost 0.8 dB (2026-12-04), so the built-in
+defaults stay those of rendered sequences."""
+
+
 def folder_config(folder: str | Path, overrides: list[str] | None = None) -> Config:
     """The built-in defaults run on a recorded sequence ``folder`` (layout detected, ``dataset.kind: auto``; the run
-    is named after the folder), with ``--set`` overrides applied and validated."""
+    is named after the folder), with ``--set`` overrides applied and validated. On sensor data (``SENSOR_KINDS``) the
+    mapping schedule is ``SENSOR_MAPPING`` unless an override sets it; the saved config shows what was used."""
+    from ggfslam.data.registry import detect_kind
+
     folder = Path(folder)
     if not folder.is_dir():
         raise ConfigError(f"{folder}: not a folder")
     root = folder.resolve()
-    base = {"name": root.name or "run", "dataset": {"path": str(root), "kind": "auto"}}
-    return config_from_dict(apply_overrides(base, overrides or []), f"{folder} (built-in defaults)")
+    source = f"{folder} (built-in defaults)"
+    data = apply_overrides({"name": root.name or "run", "dataset": {"path": str(root), "kind": "auto"}},
+                           overrides or [])
+    cfg = config_from_dict(data, source)  # unknown keys and bad values are reported before the layout is read
+    kind = detect_kind(expand_path(cfg.dataset.path)) if cfg.dataset.kind == "auto" else cfg.dataset.kind
+    if kind not in SENSOR_KINDS:
+        return cfg
+    return config_from_dict(_merged({"mapping": dict(SENSOR_MAPPING)}, data), source)
 
 
 # settings of how a run is executed, not of what it computes: a run may be resumed or reused under other values

@@ -193,13 +193,14 @@ def test_run_on_a_sequence_folder_uses_the_built_in_defaults(cache, tmp_path):
     out = tmp_path / "run"
     res = runner.invoke(app, ["run", str(seq), "--out", str(out), "--no-progress", "--set", "mapping.enabled=false"])
     assert res.exit_code == 0, res.output
-    from ggfslam.config import Config, load_config
+    from ggfslam.config import SENSOR_MAPPING, Config, load_config
 
     saved = load_config(out / "config.yaml")  # the resolved config: the defaults, the folder, the override
     assert saved.name == "my_sensor_take"
     assert Path(saved.dataset.path) == seq.resolve() and saved.dataset.kind == "auto"
     assert saved.mapping.enabled is False
     assert saved.tracking == Config.model_validate({"dataset": {"path": "x"}}).tracking
+    assert {k: getattr(saved.mapping, k) for k in SENSOR_MAPPING} == SENSOR_MAPPING  # a TUM-layout folder: sensor data
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["trajectory"]["ate_pairs"] == 12  # the folder's ground truth was found and every frame scored
     assert metrics["trajectory"]["ate_rmse_cm"] < 3.0

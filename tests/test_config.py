@@ -92,3 +92,29 @@ def test_a_commands_defaults_sit_beneath_the_file_and_the_overrides(tmp_path):
     assert (c.mapping.n_offsets, c.mapping.train_width) == (7, 320)  # the file wins over the default
     c = load_config(path, ["mapping.n_offsets=3", "mapping.train_width=160"], defaults=defaults)
     assert (c.mapping.n_offsets, c.mapping.train_width) == (3, 160)  # and --set over both
+
+
+def test_a_sensor_folder_gets_the_sensor_mapping_schedule_and_overrides_win(tmp_path):
+    from ggfslam.config import SENSOR_MAPPING, folder_config
+
+    tum = tmp_path / "take"
+    tum.mkdir()
+    (tum / "rgb.txt").write_text("")
+    (tum / "depth.txt").write_text("")
+    cfg = folder_config(tum)
+    assert cfg.dataset.kind == "auto" and cfg.name == "take"
+    assert {k: getattr(cfg.mapping, k) for k in SENSOR_MAPPING} == SENSOR_MAPPING
+    cfg = folder_config(tum, ["mapping.n_offsets=10", "mapping.final_iterations=50"])
+    assert cfg.mapping.n_offsets == 10 and cfg.mapping.final_iterations == 50
+    assert cfg.mapping.iterations_per_keyframe == SENSOR_MAPPING["iterations_per_keyframe"]
+    # rendered Replica (NICE-SLAM layout) keeps the built-in schedule, as does a kind set by hand
+    replica = tmp_path / "office0"
+    (replica / "results").mkdir(parents=True)
+    (replica / "traj.txt").write_text("")
+    defaults = Config.model_validate({"dataset": {"path": "x"}}).mapping
+    assert folder_config(replica).mapping == defaults
+    assert folder_config(tum, ["dataset.kind=replica"]).mapping == defaults
+    # a folder no reader knows is named as such
+    (tmp_path / "photos").mkdir()
+    with pytest.raises(Exception, match="cannot tell the dataset format"):
+        folder_config(tmp_path / "photos")
