@@ -6,7 +6,7 @@ import pytest
 from ggfslam.config import (
     Config, apply_overrides, config_from_dict, describe_fields, expand_path, load_config, save_config,
 )
-from ggfslam.errors import ConfigError
+from ggfslam.errors import ConfigError, DatasetError
 
 # run configurations; configs/plans/ holds batch plans (validated in tests/test_batch_plan.py)
 CONFIGS = sorted(p for p in (Path(__file__).parents[1] / "configs").rglob("*.yaml") if p.parent.name != "plans")
@@ -116,5 +116,5 @@ def test_a_sensor_folder_gets_the_sensor_mapping_schedule_and_overrides_win(tmp_
     assert folder_config(tum, ["dataset.kind=replica"]).mapping == defaults
     # a folder no reader knows is named as such
     (tmp_path / "photos").mkdir()
-    with pytest.raises(Exception, match="cannot tell the dataset format"):
+    with pytest.raises(DatasetError, match="cannot tell the dataset format"):
         folder_config(tmp_path / "photos")
