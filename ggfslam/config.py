@@ -932,7 +932,8 @@ SENSOR_MAPPING = {"iterations_per_keyframe": 12, "iterations_per_frame": 1.5, "f
                   "coarse_fraction": 0.7, "n_offsets": 8}
 """The mapping schedule ``folder_config`` lays beneath the overrides on sensor data: fewer steps while frames arrive,
 more in the final refinement over the keyframes the map fits worst, 70% of the steps at half size, eight children per
-anchor (the settings of the bundled TUM and 7-Scenes configs). On the two real folders of ``../shared/data``, built-in
+anchor (configs/tum/fr3_cabinet_kf.yaml's schedule; the registered 7-Scenes config has 1500 final steps, the
+unregistered one 700 and the built-in split and children). On the two real folders of ``../shared/data``, built-in
 defaults -> this (2026-12-06, each run alone, all frames at 640x480): fr3/cabinet 24.75 -> 25.63 dB, depth L1
 3.09 -> 3.01 cm, 164 -> 189 s; 7-Scenes kitchen (unregistered) 25.54 -> 26.20 dB, 4.83 -> 4.68 cm, 259 -> 220 s;
 ATE unchanged (mapping does not move the poses). On rendered Replica it lost 0.8 dB (2026-12-04), so the built-in
