@@ -13,7 +13,7 @@ from typing import Any, Literal
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, ValidationError, field_validator, model_validator
 
 from ggfslam.atomic import write_text_atomic
 from ggfslam.errors import ConfigError
@@ -722,6 +722,12 @@ class GCGRConfig(_Section):
     """Refine every tracked frame's pose with its GCGR factors: auto = on with the GPU (gsplat) renderer only."""
     per_frame_sigmas: tuple[float, float] = (0.01, 0.01)
     """Prior of the per-frame refinement on the tracked pose: rotation (rad), translation (m)."""
+
+    @field_validator("per_frame", mode="before")
+    @classmethod
+    def _yaml_switch(cls, v):
+        # YAML 1.1 reads a bare on / off (in a config or a --set value) as true / false
+        return {True: "on", False: "off"}.get(v, v) if isinstance(v, bool) else v
 
     @model_validator(mode="after")
     def _check(self):

@@ -38,6 +38,17 @@ def test_unknown_key_lists_valid_choices(tmp_path):
     assert "bad.yaml" in msg and "tracking.methd" in msg and "method" in msg and "depth_max" in msg
 
 
+def test_bare_yaml_on_off_switches_are_read_as_words(tmp_path):
+    """YAML 1.1 reads a bare ``on`` / ``off`` as true / false; a switch spelled that way means the word."""
+    cfg = load_config(CONFIGS[0], ["gcgr.per_frame=on"])
+    assert cfg.gcgr.per_frame == "on"
+    p = tmp_path / "c.yaml"
+    p.write_text("dataset: {kind: synthetic}\ngcgr: {per_frame: off}\n")
+    assert load_config(p).gcgr.per_frame == "off"
+    with pytest.raises(ConfigError, match="gcgr.per_frame"):
+        load_config(CONFIGS[0], ["gcgr.per_frame=sometimes"])
+
+
 def test_unknown_override_key_rejected():
     with pytest.raises(ConfigError, match="unknown key 'dataset.strde'.*stride"):
         config_from_dict(apply_overrides({"dataset": {"kind": "synthetic"}}, ["dataset.strde=2"]))
