@@ -583,6 +583,11 @@ class GGFConfig(_Section):
     """Thickness of a surfel along its normal, as a fraction of the voxel size."""
     surfel_radius: float = 0.15
     """Smallest tangential standard deviation of a surfel, as a fraction of the mean distance to the K nearest anchors."""
+    surfel_orientation: Literal["field", "decoder"] = "field"
+    """How AMR orients a surfel: ``field`` turns its flat axis onto the anchor's normal (METHOD.md §5; the decoder
+    keeps the in-plane angle); ``decoder`` flattens the child's own local z axis and leaves its rotation to the
+    decoder, trained by the images and the normal loss (2DGS-like), and L_morph then has no direction term.
+    MEASURED_PLACEHOLDER"""
     snap: bool = False
     """AMR also moves planar children along the normal onto the plane fitted over their anchor's patch. Off by
     default (2026-12-02): on the noisy synthetic room it lowers the mesh depth L1 1.97 -> 1.92 cm and the mesh
@@ -622,6 +627,8 @@ class GGFConfig(_Section):
         for name in ("knn", "hidden", "aof_every", "refresh_every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1")
+        if self.snap and self.surfel_orientation != "field":
+            raise ValueError("snap moves surfels along the field's normal: it needs surfel_orientation 'field'")
         if self.borrow_k < 0:
             raise ValueError("borrow_k must be >= 0 (0 turns plane borrowing off)")
         if self.borrow_factor < 1:
@@ -718,8 +725,12 @@ class GCGRConfig(_Section):
     it (``harvest_every`` steps), not from a map that only echoes the depth it has just seeded. Measured 2026-12-02 (``ggfslam bench``,
     640x480, +GGF+GCGR against base, with ``relinearize: render``): TUM fr3/cabinet ATE +82% with 1, +13% with 0,
     tracking at 35% and 79% of the base rate; 7-Scenes kitchen -3% and -0.6%, 67% and 86%."""
-    per_frame: Literal["auto", "on", "off"] = "auto"
-    """Refine every tracked frame's pose with its GCGR factors: auto = on with the GPU (gsplat) renderer only."""
+    per_frame: Literal["auto", "on", "off"] = "off"
+    """Refine every tracked frame's pose with its GCGR factors under ``per_frame_sigmas`` (a render of the map per
+    frame); auto = on with the GPU (gsplat) renderer only. Off by default: on the CPU (2026-12-06, +GGF+GCGR
+    against the same with it on, each run alone, ~90 ms a frame) it moved the frames where the colour disagrees:
+    7-Scenes kitchen (registered config) ATE 4.84 -> 4.77 cm but PSNR 27.73 -> 25.77 dB over all frames;
+    Replica office0 with depth noise ATE 0.51 -> 0.67 cm, 35.12 -> 33.46 dB."""
     per_frame_sigmas: tuple[float, float] = (0.01, 0.01)
     """Prior of the per-frame refinement on the tracked pose: rotation (rad), translation (m)."""
 

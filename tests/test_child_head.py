@@ -23,12 +23,12 @@ def _map(n: int = 300, seed: int = 0, view_dependent: bool = False, sh_degree: i
     return m
 
 
-def _spec(m: AnchorMap, idx: torch.Tensor, snap: bool, seed: int = 1) -> SurfelSpec:
+def _spec(m: AnchorMap, idx: torch.Tensor, snap: bool, seed: int = 1, orient: bool = True) -> SurfelSpec:
     g = torch.Generator().manual_seed(seed)
     n = torch.nn.functional.normalize(torch.randn(len(idx), 3, generator=g), dim=1)
     planar = torch.rand(len(idx), generator=g) > 0.4
     return SurfelSpec(planar, n, quat_z_to(n), m.surface[idx] + 0.01, 0.004 + 0.01 * torch.rand(len(idx), generator=g),
-                      2e-5, snap)
+                      2e-5, snap, orient)
 
 
 def _reference(m: AnchorMap, cam, spec: SurfelSpec | None):
@@ -37,9 +37,9 @@ def _reference(m: AnchorMap, cam, spec: SurfelSpec | None):
         return g.means, g.quats, g.scales, g.opacities, g.colors, g.child_index
     a = g.anchor_index  # the map's first anchors are the decoded ones (mask None)
     q, s, mu = surfel_shape(g.quats, g.scales, g.means, spec.normals[a], spec.surface[a], spec.radius[a], spec.eps,
-                            spec.align[a], spec.planar[a], spec.snap)
+                            spec.align[a], spec.planar[a], spec.snap, spec.orient)
     colors = g.colors
-    if spec.snap:  # the SH colour is seen along the direction to where the child ends up
+    if spec.snap and spec.orient:  # the SH colour is seen along the direction to where the child ends up
         raw_c = m.decoder.raw(m.anchors, m.features)[1]  # [A, k, B, 3]
         slot = g.child_index % m.k
         colors = m.decoder._color(raw_c[a, slot][:, None], m.base_color[a, slot][:, None], mu[:, None], cam)[:, 0]
@@ -47,12 +47,12 @@ def _reference(m: AnchorMap, cam, spec: SurfelSpec | None):
 
 
 @pytest.mark.parametrize("surfels,decoder", [("none", "sh1"), ("amr", "sh3"), ("amr+snap", "sh1"),
-                                             ("amr", "scaffold")])
+                                             ("amr", "scaffold"), ("amr, decoder's rotation", "sh1")])
 def test_child_head_matches_the_torch_reference(surfels, decoder):
     m = _map(view_dependent=decoder == "scaffold", sh_degree={"sh1": 1, "sh3": 3, "scaffold": 0}[decoder])
     cam = torch.tensor([0.5, -1.0, -2.0])
     idx = torch.arange(m.n_anchors)
-    spec = None if surfels == "none" else _spec(m, idx, snap=surfels == "amr+snap")
+    spec = None if surfels == "none" else _spec(m, idx, snap=surfels == "amr+snap", orient="decoder" not in surfels)
     fused = m.decode(cam, surfels=lambda i: spec)
     ref = _reference(m, cam, spec)
     assert 0 < len(fused) < m.n_anchors * m.k  # some children dropped (opacity <= 0)
@@ -142,6 +142,39 @@ def test_child_head_sh_gradients_match_finite_differences_with_surfels():
 
     def f(ro, rc, rv, off, ls, bc):
         out = child_head(ro, rc, rv, anchors, ls, off, bc, torch.arange(M), spec, cam, sh_degree=1)
+        return torch.cat([t.flatten() for t in out[:5]])
+
+    assert torch.autograd.gradcheck(f, ins, eps=1e-6, atol=1e-6)
+
+
+def test_decoder_orientation_flattens_the_childs_own_z_axis():
+    """``orient=False`` (``ggf.surfel_orientation: decoder``): a planar anchor's children keep the decoder's rotation
+    and position, are flat along their own local z axis with the tangential floor, and get gradients for all four
+    quaternion components (exact finite differences through the compiled head)."""
+    from ggfslam.gaussians.child_head import child_head
+
+    g = torch.Generator().manual_seed(11)
+    M, k = 4, 3
+    d = dict(dtype=torch.float64)
+    raw_o = 0.5 + torch.rand(M, k, generator=g, **d)
+    raw_c, raw_cov = torch.randn(M, k, 3, generator=g, **d), torch.randn(M, k, 7, generator=g, **d)
+    offsets, base = torch.randn(M, k, 3, generator=g, **d), torch.randn(M, k, 3, generator=g, **d)
+    log_scale = torch.full((M, 3), -2.0, **d) + 0.1 * torch.randn(M, 3, generator=g, **d)
+    anchors = torch.randn(M, 3, generator=g, **d)
+    n = torch.nn.functional.normalize(torch.randn(M, 3, generator=g, **d), dim=1)
+    planar = torch.tensor([True, False, True, True])
+    spec = SurfelSpec(planar, n, quat_z_to(n), anchors + 0.1, torch.full((M,), 0.06, **d), 1e-4, False, False)
+    means, quats, scales, *_ = child_head(raw_o, raw_c, raw_cov, anchors, log_scale, offsets, base, torch.arange(M),
+                                          spec)
+    plain = child_head(raw_o, raw_c, raw_cov, anchors, log_scale, offsets, base, torch.arange(M))
+    assert torch.equal(quats, plain[1]) and torch.equal(means, plain[0])  # rotation and position: the decoder's
+    rows = planar.repeat_interleave(k)
+    assert torch.all(scales[rows, 2] == 1e-4) and torch.all(scales[rows, :2] >= 0.06)
+    assert torch.equal(scales[~rows], plain[2][~rows])
+    ins = [t.requires_grad_() for t in (raw_cov, log_scale)]
+
+    def f(rv, ls):
+        out = child_head(raw_o, raw_c, rv, anchors, ls, offsets, base, torch.arange(M), spec)
         return torch.cat([t.flatten() for t in out[:5]])
 
     assert torch.autograd.gradcheck(f, ins, eps=1e-6, atol=1e-6)

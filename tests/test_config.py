@@ -61,6 +61,7 @@ def test_unknown_override_key_rejected():
     ({"dataset": {"kind": "synthetic", "synthetic": {"n_frames": 1}}}, "n_frames"),
     ({"dataset": {"kind": "synthetic", "synthetic": {"source": "mesh"}}}, "mesh_path"),
     ({"dataset": {"kind": "synthetic"}, "render": {"backend": "opengl"}}, "render.backend"),
+    ({"dataset": {"kind": "synthetic"}, "ggf": {"snap": True, "surfel_orientation": "decoder"}}, "surfel_orientation"),
     ({}, "dataset"),
 ])
 def test_invalid_values_name_the_field(data, needle):

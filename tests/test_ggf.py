@@ -423,15 +423,18 @@ def test_mapper_with_field_renders_planar_weight_and_resumes(sequence, tmp_path)
     assert torch.equal(m2.ggf.p2d(), m.ggf.p2d())
 
 
-def test_mapper_with_plane_depth_renders_surfel_planes(sequence):
+@pytest.mark.parametrize("orientation", ["field", "decoder"])
+def test_mapper_with_plane_depth_renders_surfel_planes(sequence, orientation):
     """With ``ggf.plane_depth`` the map's depth is where each pixel's ray meets its surfels' planes (the field's
-    normals through the children's means; written here in world coordinates, d = n . (mean - camera centre)),
-    the planar-weight channel still comes back alone, and training runs on that depth."""
+    normals, or with ``surfel_orientation: decoder`` each surfel's own flat axis, through the children's means;
+    written here in world coordinates, d = n . (mean - camera centre)), the planar-weight channel still comes back
+    alone, and training runs on that depth."""
     from ggfslam.render.plane_depth import plane_depth
+    from ggfslam.render.projection import quat_to_rotmat
 
     ds, gt = sequence, sequence.gt_poses
     poses = {0: gt[0]}
-    m = _mapper(ds, poses, plane_depth=True)
+    m = _mapper(ds, poses, plane_depth=True, surfel_orientation=orientation)
     f = ds[0]
     m.add_keyframe(0, 0, f.rgb, f.depth)
     m.train(10, focus=0)
@@ -443,7 +446,12 @@ def test_mapper_with_plane_depth_renders_surfel_planes(sequence):
         g, _ = m._decode_view(T_wc, m.intr)
         planar = m.ggf.planar()[g.anchor_index]
         assert 0 < int(planar.sum()) < len(g)
-        n_w = m.ggf.geom.normals[g.anchor_index].double()
+        if orientation == "field":
+            n_w = m.ggf.geom.normals[g.anchor_index].double()
+        else:
+            n_w = quat_to_rotmat(g.quats.double())[:, :, 2]
+            flat = g.scales[planar]
+            assert torch.all(flat[:, 2] < flat[:, :2].min(1).values)  # the local z axis is the flat one
         d = (n_w * (g.means.double() - torch.from_numpy(T_wc[:3, 3]))).sum(-1)
         sign = torch.where(d < 0, -1.0, 1.0).double()
         R_cw = torch.from_numpy(T_wc[:3, :3].T)
@@ -509,7 +517,8 @@ def test_normal_error_degrees():
     assert normal_error_deg(b, a) == pytest.approx(90.0)
 
 
-def test_surfel_shape_backward_matches_autograd_reference():
+@pytest.mark.parametrize("orient", [True, False])
+def test_surfel_shape_backward_matches_autograd_reference(orient):
     from ggfslam.ggf.amr import surfel_shape_reference
 
     g = torch.Generator().manual_seed(3)
@@ -527,12 +536,12 @@ def test_surfel_shape_backward_matches_autograd_reference():
         return sum((o * w).sum() for o, w in zip(outs, weights))
 
     ins = [a.clone().requires_grad_(True) for a in args]
-    fast = surfel_shape(*ins, normals, surface, radius, 1e-4, mask=mask)
+    fast = surfel_shape(*ins, normals, surface, radius, 1e-4, mask=mask, orient=orient)
     loss(lambda *x: fast, ins).backward()
     ref_ins = [a.clone().requires_grad_(True) for a in args]
 
     def ref_fn(q, s, m):
-        rq, rs, rm = surfel_shape_reference(q, s, m, normals, surface, radius, 1e-4)
+        rq, rs, rm = surfel_shape_reference(q, s, m, normals, surface, radius, 1e-4, orient)
         k = mask[:, None]
         return torch.where(k, rq, q), torch.where(k, rs, s), torch.where(k, rm, m)
 
@@ -542,5 +551,6 @@ def test_surfel_shape_backward_matches_autograd_reference():
     for a, b in zip(ins, ref_ins):
         assert torch.allclose(a.grad, b.grad, atol=1e-10)
     # and against finite differences
-    assert torch.autograd.gradcheck(lambda q, s, m: surfel_shape(q, s, m, normals, surface, radius, 1e-4, mask=mask),
+    assert torch.autograd.gradcheck(lambda q, s, m: surfel_shape(q, s, m, normals, surface, radius, 1e-4, mask=mask,
+                                                                 orient=orient),
                                     [a.clone().requires_grad_(True) for a in args])

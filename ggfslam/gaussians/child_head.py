@@ -9,8 +9,9 @@ What it computes (per child j of anchor m; the plain-torch reference is ``ChildD
 - scale ``s = exp(log_scale[m]) * sigmoid(raw_cov[:3])``, rotation ``q = raw_cov[3:7]`` (w, x, y, z; the
   renderer normalises it), mean ``anchor[m] + offsets[m, j] * exp(log_scale[m])``;
 - AMR on the children of planar anchors (ggf/amr.py): ``q' = c0 align + c1 (align * k)`` with ``c`` the unit
-  (w, z) part of ``q``, scales ``(max(s_x, r), max(s_y, r), eps)``, and with ``snap`` the mean moved along the
-  normal onto the anchor's plane.
+  (w, z) part of ``q`` (with ``orient`` off, ``q`` as the decoder made it: its own local z axis is the normal),
+  scales ``(max(s_x, r), max(s_y, r), eps)``, and with ``snap`` the mean moved along the normal onto the
+  anchor's plane.
 The autograd graph of the same math in torch (tanh, sigmoid, exp, products, a cat + index_select gather of the
 kept children, AMR's selects) cost ~40 ms of a 130 ms mapping step at 100k children; here it is one forward
 and one backward kernel (parallel over anchors, no atomics: an anchor's children are handled by one thread, so
@@ -38,6 +39,7 @@ class SurfelSpec:
     radius: torch.Tensor  # [M] smallest tangential radius
     eps: float  # surfel thickness
     snap: bool  # move means onto the plane
+    orient: bool = True  # turn the surfels onto the normals (else they keep the decoder's rotation)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -117,7 +119,8 @@ def _view_basis(deg, mx, my, mz, cam, Y):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _child_geometry(m, j, raw_cov, anchors, offsets, L0, L1, L2, pl, align, surface, normals, radius, eps, snap):
+def _child_geometry(m, j, raw_cov, anchors, offsets, L0, L1, L2, pl, align, surface, normals, radius, eps, snap,
+                    orient):
     """Mean, rotation and scales of child j of anchor m (after AMR when ``pl``), then the three scale sigmoids."""
     sg0, sg1, sg2 = _sigmoid(raw_cov[m, j, 0]), _sigmoid(raw_cov[m, j, 1]), _sigmoid(raw_cov[m, j, 2])
     s0 = L0 * sg0
@@ -128,13 +131,14 @@ def _child_geometry(m, j, raw_cov, anchors, offsets, L0, L1, L2, pl, align, surf
     mz = anchors[m, 2] + offsets[m, j, 2] * L2
     qw, qx, qy, qz = raw_cov[m, j, 3], raw_cov[m, j, 4], raw_cov[m, j, 5], raw_cov[m, j, 6]
     if pl:
-        nrm = np.sqrt(qw * qw + qz * qz)
-        c0, c1 = 1.0, 0.0
-        if nrm > 1e-8:
-            c0, c1 = qw / nrm, qz / nrm
-        aw, ax, ay, az = align[m, 0], align[m, 1], align[m, 2], align[m, 3]
-        # align * (c0 + c1 k); align * k = (-az, ay, -ax, aw)
-        qw, qx, qy, qz = c0 * aw - c1 * az, c0 * ax + c1 * ay, c0 * ay - c1 * ax, c0 * az + c1 * aw
+        if orient:
+            nrm = np.sqrt(qw * qw + qz * qz)
+            c0, c1 = 1.0, 0.0
+            if nrm > 1e-8:
+                c0, c1 = qw / nrm, qz / nrm
+            aw, ax, ay, az = align[m, 0], align[m, 1], align[m, 2], align[m, 3]
+            # align * (c0 + c1 k); align * k = (-az, ay, -ax, aw)
+            qw, qx, qy, qz = c0 * aw - c1 * az, c0 * ax + c1 * ay, c0 * ay - c1 * ax, c0 * az + c1 * aw
         r = radius[m]
         s0 = s0 if s0 >= r else r
         s1 = s1 if s1 >= r else r
@@ -148,8 +152,8 @@ def _child_geometry(m, j, raw_cov, anchors, offsets, L0, L1, L2, pl, align, surf
 
 @njit(cache=True, nogil=True, parallel=True, fastmath=FMA)
 def head_forward(raw_o, raw_c, raw_cov, anchors, log_scale, offsets, base_color, anchor_index, planar, normals,
-                 align, surface, radius, eps, snap, cam, sh_deg, start, out_means, out_quats, out_scales, out_opac,
-                 out_col, out_child, out_local, keep, keep_o):
+                 align, surface, radius, eps, snap, orient, cam, sh_deg, start, out_means, out_quats, out_scales,
+                 out_opac, out_col, out_child, out_local, keep, keep_o):
     """Kept children of M anchors into the compact outputs (anchor m's go to rows start[m]...). For the backward,
     ``keep`` [G, 9] float64 holds each child's mean, scale sigmoids and colour sigmoids and ``keep_o`` [G] (raw_o's
     dtype) its opacity, exactly as computed here (exps and tanh: recomputing them there was about half of its
@@ -169,7 +173,7 @@ def head_forward(raw_o, raw_c, raw_cov, anchors, log_scale, offsets, base_color,
                 out_opac[row] = o
                 keep_o[row] = o
                 mx, my, mz, qw, qx, qy, qz, s0, s1, s2, sg0, sg1, sg2 = _child_geometry(
-                    m, j, raw_cov, anchors, offsets, L0, L1, L2, pl, align, surface, normals, radius, eps, snap)
+                    m, j, raw_cov, anchors, offsets, L0, L1, L2, pl, align, surface, normals, radius, eps, snap, orient)
                 _view_basis(sh_deg, mx, my, mz, cam, Y)
                 for c in range(3):
                     v = _sigmoid(raw_c[m, j, c] + base_color[m, j, c])
@@ -188,8 +192,8 @@ def head_forward(raw_o, raw_c, raw_cov, anchors, log_scale, offsets, base_color,
 
 
 @njit(cache=True, nogil=True, parallel=True, fastmath=FMA)
-def head_backward(raw_o, raw_c, raw_cov, offsets, log_scale, planar, normals, align, radius, snap, cam, sh_deg,
-                  start, keep, keep_o, g_means, g_quats, g_scales, g_opac, g_col, gr_o, gr_c, gr_cov,
+def head_backward(raw_o, raw_c, raw_cov, offsets, log_scale, planar, normals, align, radius, snap, orient, cam,
+                  sh_deg, start, keep, keep_o, g_means, g_quats, g_scales, g_opac, g_col, gr_o, gr_c, gr_cov,
                   g_offsets, g_log_scale, g_base):
     """Gradients of the raw MLP outputs, offsets, log scales and base colours from those of the kept children
     (every element of the outputs is written: children that were not kept get zero, so the caller need not clear
@@ -250,7 +254,7 @@ def head_backward(raw_o, raw_c, raw_cov, offsets, log_scale, planar, normals, al
                     gm2 += (gz - dot * dz) / dist
                 gq0, gq1, gq2, gq3 = g_quats[row, 0], g_quats[row, 1], g_quats[row, 2], g_quats[row, 3]
                 sig0, sig1, sig2 = keep[row, 3], keep[row, 4], keep[row, 5]
-                if pl:
+                if pl and orient:
                     qw, qz = raw_cov[m, j, 3], raw_cov[m, j, 6]
                     nrm = np.sqrt(qw * qw + qz * qz)
                     aw, ax, ay, az = align[m, 0], align[m, 1], align[m, 2], align[m, 3]
@@ -262,6 +266,7 @@ def head_backward(raw_o, raw_c, raw_cov, offsets, log_scale, planar, normals, al
                         gq0, gq1, gq2, gq3 = (ga - dot * c0) / nrm, 0.0, 0.0, (gk - dot * c1) / nrm
                     else:  # c is the constant (1, 0) there
                         gq0 = gq1 = gq2 = gq3 = 0.0
+                if pl:
                     r = radius[m]
                     if not L0 * sig0 >= r:
                         gs0 = 0.0
@@ -331,22 +336,22 @@ class _ChildHead(torch.autograd.Function):
         go, gc = z(g_opac, (g,)), z(g_col, (g, 3))
         gr_o, gr_c, gr_cov = np.empty_like(ro), np.empty_like(rc), np.empty_like(rv)  # the kernel writes all
         g_off, g_ls, g_bc = np.empty_like(off), np.empty_like(ls), np.empty((len(ro), ro.shape[1], 3), ro.dtype)
-        planar, normals, align, _, radius, _, snap = surf
-        head_backward(ro, rc, rv, off, ls, planar, normals, align, radius, snap, cam, sh_deg, start, keep, keep_o, gm, gq,
-                      gs, go, gc, gr_o, gr_c, gr_cov, g_off, g_ls, g_bc)
+        planar, normals, align, _, radius, _, snap, orient = surf
+        head_backward(ro, rc, rv, off, ls, planar, normals, align, radius, snap, orient, cam, sh_deg, start, keep,
+                      keep_o, gm, gq, gs, go, gc, gr_o, gr_c, gr_cov, g_off, g_ls, g_bc)
         return (torch.from_numpy(gr_o), torch.from_numpy(gr_c).reshape(c_shape), torch.from_numpy(gr_cov),
                 torch.from_numpy(g_off), torch.from_numpy(g_ls), torch.from_numpy(g_bc), None, None, None, None, None,
                 None)
 
 
 def _surfel_arrays(m: int, spec: SurfelSpec | None, dt: torch.dtype) -> tuple:
-    """(planar, normals, align, surface, radius, eps, snap) as the kernels take them."""
+    """(planar, normals, align, surface, radius, eps, snap, orient) as the kernels take them."""
     f = np.float64 if dt == torch.float64 else np.float32
     if spec is None:
         z3 = np.zeros((m, 3), f)
-        return np.zeros(m, np.uint8), z3, np.zeros((m, 4), f), z3, np.zeros(m, f), 0.0, False
+        return np.zeros(m, np.uint8), z3, np.zeros((m, 4), f), z3, np.zeros(m, f), 0.0, False, True
     return (spec.planar.numpy().astype(np.uint8), _np(spec.normals, dt), _np(spec.align, dt), _np(spec.surface, dt),
-            _np(spec.radius, dt), float(spec.eps), bool(spec.snap))
+            _np(spec.radius, dt), float(spec.eps), bool(spec.snap), bool(spec.orient))
 
 
 def child_head(raw_o: torch.Tensor, raw_c: torch.Tensor, raw_cov: torch.Tensor, anchors: torch.Tensor,

@@ -8,7 +8,9 @@ For a child of an anchor with ``P_2D > tau_thresh`` (normal ``n``, surface point
   neighbouring surfels overlap and leave no holes;
 - with ``ggf.snap``, the mean moved along ``n`` onto the anchor's plane through ``p`` (the decoder keeps the
   in-plane position); ``p`` is the anchor's surface point projected onto its patch's plane (``plane_points``
-  of ``ggfslam.ggf.features``), so the plane is averaged over the patch rather than one voxel's depth.
+  of ``ggfslam.ggf.features``), so the plane is averaged over the patch rather than one voxel's depth;
+- with ``ggf.surfel_orientation: decoder`` (``orient=False``) the rotation is the decoder's own: the surfel is
+  flat along its own local z axis, which the images and the normal loss turn, not along ``n`` (no snap then).
 This is a hard projection of what the decoder outputs, so the render always sees surfels. ``L_morph``
 (``morph_loss``) acts on the decoder's raw output: it pulls the raw shortest axis onto ``n`` and the raw
 thickness to ``eps``, so children keep their surfel shape if their anchor later drops below the threshold.
@@ -50,15 +52,15 @@ class _SurfelShape(torch.autograd.Function):
     (a dozen tensor ops instead of autograd's graph of ~40: about 4x faster at 150k children)."""
 
     @staticmethod
-    def forward(ctx, quats, scales, means, mask, normals, surface, min_radius, eps, align, snap):
+    def forward(ctx, quats, scales, means, mask, normals, surface, min_radius, eps, align, snap, orient):
         c, norm = _inplane(quats)  # [N, 2]
         qk = quat_multiply(align, torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=align.dtype).expand_as(align))
-        q = c[:, :1] * align + c[:, 1:] * qk  # align * (c0 + c1 k)
+        q = c[:, :1] * align + c[:, 1:] * qk if orient else quats  # align * (c0 + c1 k)
         tang = scales[:, :2] >= min_radius[:, None]  # [N, 2] tangential scale above the floor
         s = torch.cat([torch.where(tang, scales[:, :2], min_radius[:, None]), torch.full_like(scales[:, :1], eps)], 1)
         m = means - ((means - surface) * normals).sum(-1, keepdim=True) * normals if snap else means
         mk = mask[:, None]
-        ctx.snap = snap
+        ctx.snap, ctx.orient = snap, orient
         ctx.save_for_backward(mask, normals, align, qk, c, norm, tang)
         return torch.where(mk, q, quats), torch.where(mk, s, scales), torch.where(mk, m, means)
 
@@ -67,35 +69,44 @@ class _SurfelShape(torch.autograd.Function):
         mask, normals, align, qk, c, norm, tang = ctx.saved_tensors
         mk = mask[:, None]
         # q = c0 align + c1 qk with c = (w, z) / |(w, z)|
-        g_c = torch.stack([(g_q * align).sum(-1), (g_q * qk).sum(-1)], 1)  # [N, 2]
-        g_wz = (g_c - (g_c * c).sum(-1, keepdim=True) * c) / norm.clamp_min(1e-8)[:, None]
-        g_quat = torch.zeros_like(g_q)
-        g_quat[:, 0], g_quat[:, 3] = g_wz[:, 0], g_wz[:, 1]
+        if ctx.orient:
+            g_c = torch.stack([(g_q * align).sum(-1), (g_q * qk).sum(-1)], 1)  # [N, 2]
+            g_wz = (g_c - (g_c * c).sum(-1, keepdim=True) * c) / norm.clamp_min(1e-8)[:, None]
+            g_quat = torch.zeros_like(g_q)
+            g_quat[:, 0], g_quat[:, 3] = g_wz[:, 0], g_wz[:, 1]
+        else:
+            g_quat = g_q
         g_scale = torch.cat([g_s[:, :2] * tang, torch.zeros_like(g_s[:, :1])], 1)
         g_mean = g_m - (g_m * normals).sum(-1, keepdim=True) * normals if ctx.snap else g_m  # (I - n n^T) g
         return (torch.where(mk, g_quat, g_q), torch.where(mk, g_scale, g_s), torch.where(mk, g_mean, g_m),
-                None, None, None, None, None, None, None)
+                None, None, None, None, None, None, None, None)
 
 
 def surfel_shape(quats: torch.Tensor, scales: torch.Tensor, means: torch.Tensor, normals: torch.Tensor,
                  surface: torch.Tensor, min_radius: torch.Tensor, eps: float, align: torch.Tensor | None = None,
-                 mask: torch.Tensor | None = None, snap: bool = True) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                 mask: torch.Tensor | None = None, snap: bool = True,
+                 orient: bool = True) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """AMR applied to children [N]: quats [N, 4], scales [N, 3], means [N, 3] of the decoder, their anchor's
     normal [N, 3], surface point [N, 3] and smallest tangential radius [N] -> surfel (quats, scales, means).
     ``align`` [N, 4]: ``quat_z_to(normals)`` when the caller has it already; ``mask`` [N] bool: shape only
     those children and pass the others through (default: all); ``snap=False`` leaves the means where the
-    decoder put them. Differentiable in quats, scales and means."""
+    decoder put them; ``orient=False`` leaves the rotations as the decoder made them (and implies no snap).
+    Differentiable in quats, scales and means."""
     align = quat_z_to(normals) if align is None else align
     mask = torch.ones(len(quats), dtype=torch.bool) if mask is None else mask
-    return _SurfelShape.apply(quats, scales, means, mask, normals, surface, min_radius, float(eps), align, bool(snap))
+    return _SurfelShape.apply(quats, scales, means, mask, normals, surface, min_radius, float(eps), align,
+                              bool(snap and orient), bool(orient))
 
 
-def surfel_shape_reference(quats, scales, means, normals, surface, min_radius, eps):
-    """``surfel_shape`` in plain autograd ops (the parity reference of the hand-written backward)."""
+def surfel_shape_reference(quats, scales, means, normals, surface, min_radius, eps, orient: bool = True):
+    """``surfel_shape`` in plain autograd ops (the parity reference of the hand-written backward; with ``orient``
+    the means snapped, without it rotations and means as the decoder made them)."""
+    s = torch.cat([torch.maximum(scales[:, :2], min_radius[:, None]), torch.full_like(scales[:, 2:], eps)], dim=1)
+    if not orient:
+        return quats, s, means
     c, _ = _inplane(quats)
     inplane = torch.stack([c[:, 0], torch.zeros_like(c[:, 0]), torch.zeros_like(c[:, 0]), c[:, 1]], -1)
     q = quat_multiply(quat_z_to(normals), inplane)
-    s = torch.cat([torch.maximum(scales[:, :2], min_radius[:, None]), torch.full_like(scales[:, 2:], eps)], dim=1)
     m = means - ((means - surface) * normals).sum(-1, keepdim=True) * normals
     return q, s, m
 

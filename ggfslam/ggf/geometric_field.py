@@ -40,6 +40,7 @@ class GeometricGaussianField:
 
     def __init__(self, cfg: GGFConfig, voxel_size: float, seed: int = 0):
         self.cfg, self.voxel_size = cfg, float(voxel_size)
+        self.orient = cfg.surfel_orientation == "field"  # AMR turns surfels onto the anchors' normals
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
             self.net = ResidualField(cfg.hidden)
@@ -95,7 +96,8 @@ class GeometricGaussianField:
         geo, c = self.geom, self.cfg
         return SurfelSpec(planar, geo.normals.index_select(0, index), self._align.index_select(0, index),
                           geo.plane_points.index_select(0, index),
-                          c.surfel_radius * geo.spacing.index_select(0, index), c.surfel_eps * self.voxel_size, c.snap)
+                          c.surfel_radius * geo.spacing.index_select(0, index), c.surfel_eps * self.voxel_size, c.snap,
+                          self.orient)
 
     def morph(self, g: DecodedGaussians) -> torch.Tensor:
         """L_morph over (an even sample of) the children of planar anchors in g, on the decoder's own shape
@@ -110,13 +112,14 @@ class GeometricGaussianField:
         c = self.cfg
         n = self.geom.normals.index_select(0, g.anchor_index[idx])
         eps = c.surfel_eps * self.voxel_size
+        lambda_dir = c.lambda_dir if self.orient else 0.0  # the decoder's own z axis is the normal then
         raw = g.raw_shape()
         if raw is not None:  # the compiled loss on the raw output (parity-tested against morph_loss)
             raw_cov, log_scale, local, k = raw
             return morph_loss_raw(raw_cov, log_scale, local[idx], g.child_index[idx] % k, n, eps, self.voxel_size,
-                                  c.lambda_dir, c.lambda_thin)
+                                  lambda_dir, c.lambda_thin)
         quats, scales = g.unshaped(idx)
-        return morph_loss(quats, scales, n, eps, self.voxel_size, c.lambda_dir, c.lambda_thin)
+        return morph_loss(quats, scales, n, eps, self.voxel_size, lambda_dir, c.lambda_thin)
 
     def shape(self, g: DecodedGaussians) -> tuple[DecodedGaussians, torch.Tensor]:
         """Children g of the map decoded without AMR (``decode(reference=True)``) with AMR applied to those of
@@ -133,7 +136,7 @@ class GeometricGaussianField:
         eps = c.surfel_eps * self.voxel_size
         radius = c.surfel_radius * geo.spacing.index_select(0, a)
         quats, scales, means = surfel_shape(g.quats, g.scales, g.means, n, geo.plane_points.index_select(0, a),
-                                            radius, eps, self._align.index_select(0, a), planar, c.snap)
+                                            radius, eps, self._align.index_select(0, a), planar, c.snap, self.orient)
         l_morph = self.morph(g)
         return DecodedGaussians(means, quats, scales, g.opacities, g.colors, g.anchor_index, g.child_index), l_morph
 

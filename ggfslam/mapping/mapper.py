@@ -48,6 +48,7 @@ from ggfslam.mapping.losses import depth_loss, depth_spread_loss, opacity_entrop
 from ggfslam.mapping.sensor_kernels import sensor_model
 from ggfslam.render.api import rasterize
 from ggfslam.render.plane_depth import PLANE_CHANNELS, pixel_rays, plane_channels, plane_depth
+from ggfslam.render.projection import quat_to_rotmat
 from ggfslam.render.types import Intrinsics, RenderOutput, RenderSettings
 
 PoseSource = Callable[[], dict[int, np.ndarray]]  # keyframe id -> T_wc [4, 4]
@@ -439,7 +440,11 @@ class Mapper:
             R = T_cw[:3, :3]
             mu_c = g.means @ R.T + T_cw[:3, 3]  # [G, 3]
         if planes:
-            normals_c = self.ggf.geom.normals.index_select(0, g.anchor_index) @ R.T  # [G, 3]
+            if self.ggf.orient:
+                normals_w = self.ggf.geom.normals.index_select(0, g.anchor_index)  # [G, 3]
+            else:  # a surfel's own flat axis
+                normals_w = quat_to_rotmat(g.quats)[:, :, 2]
+            normals_c = normals_w @ R.T  # [G, 3]
             channels.append(plane_channels(mu_c, normals_c, self.ggf.planar().index_select(0, g.anchor_index)))
         if depth_moments:
             z = mu_c[:, 2:3].detach()  # [G, 1]: held, so the moments move only with the blending weights
