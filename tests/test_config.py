@@ -107,7 +107,7 @@ def test_a_commands_defaults_sit_beneath_the_file_and_the_overrides(tmp_path):
 
 
 def test_a_sensor_folder_gets_the_sensor_mapping_schedule_and_overrides_win(tmp_path):
-    from ggfslam.config import SENSOR_MAPPING, folder_config
+    from ggfslam.config import SENSOR_GGF, SENSOR_MAPPING, folder_config
 
     tum = tmp_path / "take"
     tum.mkdir()
@@ -116,8 +116,9 @@ def test_a_sensor_folder_gets_the_sensor_mapping_schedule_and_overrides_win(tmp_
     cfg = folder_config(tum)
     assert cfg.dataset.kind == "auto" and cfg.name == "take"
     assert {k: getattr(cfg.mapping, k) for k in SENSOR_MAPPING} == SENSOR_MAPPING
-    cfg = folder_config(tum, ["mapping.n_offsets=10", "mapping.final_iterations=50"])
-    assert cfg.mapping.n_offsets == 10 and cfg.mapping.final_iterations == 50
+    assert {k: getattr(cfg.ggf, k) for k in SENSOR_GGF} == SENSOR_GGF
+    cfg = folder_config(tum, ["mapping.n_offsets=10", "mapping.final_iterations=50", "ggf.surfel_orientation=field"])
+    assert cfg.mapping.n_offsets == 10 and cfg.mapping.final_iterations == 50 and cfg.ggf.surfel_orientation == "field"
     assert cfg.mapping.iterations_per_keyframe == SENSOR_MAPPING["iterations_per_keyframe"]
     # rendered Replica (NICE-SLAM layout) keeps the built-in schedule, as does a kind set by hand
     replica = tmp_path / "office0"
@@ -125,6 +126,7 @@ def test_a_sensor_folder_gets_the_sensor_mapping_schedule_and_overrides_win(tmp_
     (replica / "traj.txt").write_text("")
     defaults = Config.model_validate({"dataset": {"path": "x"}}).mapping
     assert folder_config(replica).mapping == defaults
+    assert folder_config(replica).ggf.surfel_orientation == "field"
     assert folder_config(tum, ["dataset.kind=replica"]).mapping == defaults
     # a folder no reader knows is named as such
     (tmp_path / "photos").mkdir()
