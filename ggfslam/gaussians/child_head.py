@@ -38,7 +38,7 @@ class SurfelSpec:
     surface: torch.Tensor  # [M, 3] a point on the anchor's plane (world)
     radius: torch.Tensor  # [M] smallest tangential radius
     eps: float  # surfel thickness
-    snap: bool  # move means onto the plane
+    snap: bool  # move means onto the plane (only with orient, as ``ggf.amr.surfel_shape``)
     orient: bool = True  # turn the surfels onto the normals (else they keep the decoder's rotation)
 
 
@@ -351,7 +351,7 @@ def _surfel_arrays(m: int, spec: SurfelSpec | None, dt: torch.dtype) -> tuple:
         z3 = np.zeros((m, 3), f)
         return np.zeros(m, np.uint8), z3, np.zeros((m, 4), f), z3, np.zeros(m, f), 0.0, False, True
     return (spec.planar.numpy().astype(np.uint8), _np(spec.normals, dt), _np(spec.align, dt), _np(spec.surface, dt),
-            _np(spec.radius, dt), float(spec.eps), bool(spec.snap), bool(spec.orient))
+            _np(spec.radius, dt), float(spec.eps), bool(spec.snap and spec.orient), bool(spec.orient))
 
 
 def child_head(raw_o: torch.Tensor, raw_c: torch.Tensor, raw_cov: torch.Tensor, anchors: torch.Tensor,

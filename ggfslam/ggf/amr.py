@@ -53,9 +53,13 @@ class _SurfelShape(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, quats, scales, means, mask, normals, surface, min_radius, eps, align, snap, orient):
-        c, norm = _inplane(quats)  # [N, 2]
-        qk = quat_multiply(align, torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=align.dtype).expand_as(align))
-        q = c[:, :1] * align + c[:, 1:] * qk if orient else quats  # align * (c0 + c1 k)
+        if orient:
+            c, norm = _inplane(quats)  # [N, 2]
+            qk = quat_multiply(align, torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=align.dtype).expand_as(align))
+            q = c[:, :1] * align + c[:, 1:] * qk  # align * (c0 + c1 k)
+        else:  # the decoder's own rotation: nothing of the in-plane angle to keep for the backward
+            c = norm = qk = None
+            q = quats
         tang = scales[:, :2] >= min_radius[:, None]  # [N, 2] tangential scale above the floor
         s = torch.cat([torch.where(tang, scales[:, :2], min_radius[:, None]), torch.full_like(scales[:, :1], eps)], 1)
         m = means - ((means - surface) * normals).sum(-1, keepdim=True) * normals if snap else means
