@@ -25,10 +25,10 @@ import subprocess
 import sys
 import time
 
+import ggfslam  # noqa: F401  (first: its numba and OpenMP settings, ggfslam/numba_setup.py, precede torch's threads)
 import numpy as np
 import torch
 
-import ggfslam.render.kernels_cpu  # noqa: F401  (sets its numba/OpenMP defaults before numba starts threads)
 from ggfslam.render.scenes import room_camera, room_scene
 
 
@@ -147,7 +147,7 @@ def first_call_seconds(threads: int) -> dict:
                 continue
             first, imp = (float(x) for x in r.stdout.split())
             out[label] = {"first_render_fwd_bwd_s": round(first, 3), "import_s": round(imp, 3)}
-    out["note"] = "numba cache: NUMBA_CACHE_DIR, default ~/.cache/ggfslam/numba (set by ggfslam.render.kernels_cpu)"
+    out["note"] = "numba cache: NUMBA_CACHE_DIR, default ~/.cache/ggfslam/numba (set on import ggfslam)"
     return out
 
 

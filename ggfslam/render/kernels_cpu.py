@@ -57,14 +57,11 @@ numba caching: ``cache=True``; unless ``NUMBA_CACHE_DIR`` is set, the cache goes
 """
 from __future__ import annotations
 
-# numba's cache location and threading layer: ggfslam/numba_setup.py (applied on package import).
-# Threads and OpenMP: numba's OpenMP layer loads the system libgomp at its first parallel call, which reads
-# GOMP_SPINCOUNT / OMP_WAIT_POLICY then. We leave them alone. Measured (320x240, 100k Gaussians, render +
-# backward, 2 threads): on an idle machine libgomp's default spinning was a little faster than
-# GOMP_SPINCOUNT=10000 (medians 58 vs 63 ms); with another process busy on one of the two cores the
-# default spinning starves the working thread (228 ms vs 97 ms with GOMP_SPINCOUNT=10000, and 128 ms
-# with one thread). When cores are shared, give each compute thread an
-# explicit budget (numba.set_num_threads(1)) or export GOMP_SPINCOUNT=10000 before starting Python.
+# numba's cache location, threading layer and OpenMP spinning (GOMP_SPINCOUNT): ggfslam/numba_setup.py, applied
+# on package import. Measured before that setting (320x240, 100k Gaussians, render + backward, 2 threads): on an
+# idle machine libgomp's default spinning was a little faster than GOMP_SPINCOUNT=10000 (medians 58 vs 63 ms);
+# with another process busy on one of the two cores the default spinning starved the working thread (228 ms vs
+# 97 ms with GOMP_SPINCOUNT=10000, and 128 ms with one thread).
 import numpy as np
 from llvmlite import ir
 from numba import njit, prange, types
