@@ -167,6 +167,68 @@ REC = 16
 N_GEO = 6
 
 
+@njit(cache=True, nogil=True, inline="always", fastmath=FMA)
+def _covariance3d(qw, qx, qy, qz, s0, s1, s2):
+    """World covariance of a Gaussian with unit quaternion (w, x, y, z) and scales s: the rotation R (9 entries,
+    row-major), M = R diag(s) (9) and Sigma = M M^T (S00, S01, S02, S11, S12, S22): 24 values."""
+    r00 = 1.0 - 2.0 * (qy * qy + qz * qz)
+    r01 = 2.0 * (qx * qy - qw * qz)
+    r02 = 2.0 * (qx * qz + qw * qy)
+    r10 = 2.0 * (qx * qy + qw * qz)
+    r11 = 1.0 - 2.0 * (qx * qx + qz * qz)
+    r12 = 2.0 * (qy * qz - qw * qx)
+    r20 = 2.0 * (qx * qz - qw * qy)
+    r21 = 2.0 * (qy * qz + qw * qx)
+    r22 = 1.0 - 2.0 * (qx * qx + qy * qy)
+    m00 = r00 * s0
+    m01 = r01 * s1
+    m02 = r02 * s2
+    m10 = r10 * s0
+    m11 = r11 * s1
+    m12 = r12 * s2
+    m20 = r20 * s0
+    m21 = r21 * s1
+    m22 = r22 * s2
+    S00 = m00 * m00 + m01 * m01 + m02 * m02
+    S01 = m00 * m10 + m01 * m11 + m02 * m12
+    S02 = m00 * m20 + m01 * m21 + m02 * m22
+    S11 = m10 * m10 + m11 * m11 + m12 * m12
+    S12 = m10 * m20 + m11 * m21 + m12 * m22
+    S22 = m20 * m20 + m21 * m21 + m22 * m22
+    return (r00, r01, r02, r10, r11, r12, r20, r21, r22, m00, m01, m02, m10, m11, m12, m20, m21, m22,
+            S00, S01, S02, S11, S12, S22)
+
+
+@njit(cache=True, nogil=True, inline="always", fastmath=FMA)
+def _covariance2d(S00, S01, S02, S11, S12, S22, Rcw, fx, fy, z, rx, ry, rz, limxp, limxn, limyp, limyn, eps2d):
+    """EWA projection of the world covariance Sigma at camera point (x, y, z) = z (rx, ry, 1), rz = 1 / z:
+    the projection Jacobian J with the usual clamp of x/z, y/z (clamped tx, ty; j00, j02, j11, j12), T2 = J Rcw
+    (a, 2x3 row-major), the rows of T2 Sigma (u, v) and Sigma2 = T2 Sigma T2^T + eps2d I as (ca, cb, cc):
+    21 values."""
+    tx = z * min(limxp, max(-limxn, rx))
+    ty = z * min(limyp, max(-limyn, ry))
+    j00 = fx * rz
+    j02 = -fx * tx * rz * rz
+    j11 = fy * rz
+    j12 = -fy * ty * rz * rz
+    a00 = j00 * Rcw[0, 0] + j02 * Rcw[2, 0]
+    a01 = j00 * Rcw[0, 1] + j02 * Rcw[2, 1]
+    a02 = j00 * Rcw[0, 2] + j02 * Rcw[2, 2]
+    a10 = j11 * Rcw[1, 0] + j12 * Rcw[2, 0]
+    a11 = j11 * Rcw[1, 1] + j12 * Rcw[2, 1]
+    a12 = j11 * Rcw[1, 2] + j12 * Rcw[2, 2]
+    u0 = S00 * a00 + S01 * a01 + S02 * a02
+    u1 = S01 * a00 + S11 * a01 + S12 * a02
+    u2 = S02 * a00 + S12 * a01 + S22 * a02
+    v0 = S00 * a10 + S01 * a11 + S02 * a12
+    v1 = S01 * a10 + S11 * a11 + S12 * a12
+    v2 = S02 * a10 + S12 * a11 + S22 * a12
+    ca = a00 * u0 + a01 * u1 + a02 * u2 + eps2d
+    cb = a10 * u0 + a11 * u1 + a12 * u2
+    cc = a10 * v0 + a11 * v1 + a12 * v2 + eps2d
+    return (tx, ty, j00, j02, j11, j12, a00, a01, a02, a10, a11, a12, u0, u1, u2, v0, v1, v2, ca, cb, cc)
+
+
 @njit(cache=True, nogil=True, parallel=True, fastmath=FMA)
 def project_forward(means, quats, scales, opac, Rcw, tcw, fx, fy, cx, cy, width, height, near, far, eps2d,
                     rec, radii, valid, nworkers):
@@ -239,54 +301,9 @@ def _project_one(i, means, quats, scales, opac, Rcw, tcw, fx, fy, cx, cy, width,
     qx /= qn
     qy /= qn
     qz /= qn
-    r00 = 1.0 - 2.0 * (qy * qy + qz * qz)
-    r01 = 2.0 * (qx * qy - qw * qz)
-    r02 = 2.0 * (qx * qz + qw * qy)
-    r10 = 2.0 * (qx * qy + qw * qz)
-    r11 = 1.0 - 2.0 * (qx * qx + qz * qz)
-    r12 = 2.0 * (qy * qz - qw * qx)
-    r20 = 2.0 * (qx * qz - qw * qy)
-    r21 = 2.0 * (qy * qz + qw * qx)
-    r22 = 1.0 - 2.0 * (qx * qx + qy * qy)
-    m00 = r00 * s0
-    m01 = r01 * s1
-    m02 = r02 * s2
-    m10 = r10 * s0
-    m11 = r11 * s1
-    m12 = r12 * s2
-    m20 = r20 * s0
-    m21 = r21 * s1
-    m22 = r22 * s2
-    S00 = m00 * m00 + m01 * m01 + m02 * m02
-    S01 = m00 * m10 + m01 * m11 + m02 * m12
-    S02 = m00 * m20 + m01 * m21 + m02 * m22
-    S11 = m10 * m10 + m11 * m11 + m12 * m12
-    S12 = m10 * m20 + m11 * m21 + m12 * m22
-    S22 = m20 * m20 + m21 * m21 + m22 * m22
-    # projection Jacobian with the usual clamp of x/z, y/z
-    tx = z * min(limxp, max(-limxn, rx))
-    ty = z * min(limyp, max(-limyn, ry))
-    j00 = fx * rz
-    j02 = -fx * tx * rz * rz
-    j11 = fy * rz
-    j12 = -fy * ty * rz * rz
-    # T2 = J Rcw (2x3)
-    a00 = j00 * Rcw[0, 0] + j02 * Rcw[2, 0]
-    a01 = j00 * Rcw[0, 1] + j02 * Rcw[2, 1]
-    a02 = j00 * Rcw[0, 2] + j02 * Rcw[2, 2]
-    a10 = j11 * Rcw[1, 0] + j12 * Rcw[2, 0]
-    a11 = j11 * Rcw[1, 1] + j12 * Rcw[2, 1]
-    a12 = j11 * Rcw[1, 2] + j12 * Rcw[2, 2]
-    # Sigma2 = T2 Sigma T2^T
-    u0 = S00 * a00 + S01 * a01 + S02 * a02
-    u1 = S01 * a00 + S11 * a01 + S12 * a02
-    u2 = S02 * a00 + S12 * a01 + S22 * a02
-    v0 = S00 * a10 + S01 * a11 + S02 * a12
-    v1 = S01 * a10 + S11 * a11 + S12 * a12
-    v2 = S02 * a10 + S12 * a11 + S22 * a12
-    ca = a00 * u0 + a01 * u1 + a02 * u2 + eps2d
-    cb = a10 * u0 + a11 * u1 + a12 * u2
-    cc = a10 * v0 + a11 * v1 + a12 * v2 + eps2d
+    S00, S01, S02, S11, S12, S22 = _covariance3d(qw, qx, qy, qz, s0, s1, s2)[18:]
+    ca, cb, cc = _covariance2d(S00, S01, S02, S11, S12, S22, Rcw, fx, fy, z, rx, ry, rz, limxp, limxn, limyp, limyn,
+                               eps2d)[18:]
     det = ca * cc - cb * cb
     if not (det > 0.0 and np.isfinite(det) and np.isfinite(mx) and np.isfinite(my)):
         return
@@ -1115,59 +1132,19 @@ def project_backward(means, quats, scales, Rcw, tcw, fx, fy, cx, cy, width, heig
                 qx = qx0 / qn
                 qy = qy0 / qn
                 qz = qz0 / qn
-                r00 = 1.0 - 2.0 * (qy * qy + qz * qz)
-                r01 = 2.0 * (qx * qy - qw * qz)
-                r02 = 2.0 * (qx * qz + qw * qy)
-                r10 = 2.0 * (qx * qy + qw * qz)
-                r11 = 1.0 - 2.0 * (qx * qx + qz * qz)
-                r12 = 2.0 * (qy * qz - qw * qx)
-                r20 = 2.0 * (qx * qz - qw * qy)
-                r21 = 2.0 * (qy * qz + qw * qx)
-                r22 = 1.0 - 2.0 * (qx * qx + qy * qy)
                 s0 = np.float64(scales[i, 0])
                 s1 = np.float64(scales[i, 1])
                 s2 = np.float64(scales[i, 2])
-                m00 = r00 * s0
-                m01 = r01 * s1
-                m02 = r02 * s2
-                m10 = r10 * s0
-                m11 = r11 * s1
-                m12 = r12 * s2
-                m20 = r20 * s0
-                m21 = r21 * s1
-                m22 = r22 * s2
-                S00 = m00 * m00 + m01 * m01 + m02 * m02
-                S01 = m00 * m10 + m01 * m11 + m02 * m12
-                S02 = m00 * m20 + m01 * m21 + m02 * m22
-                S11 = m10 * m10 + m11 * m11 + m12 * m12
-                S12 = m10 * m20 + m11 * m21 + m12 * m22
-                S22 = m20 * m20 + m21 * m21 + m22 * m22
+                (r00, r01, r02, r10, r11, r12, r20, r21, r22, m00, m01, m02, m10, m11, m12, m20, m21, m22,
+                 S00, S01, S02, S11, S12, S22) = _covariance3d(qw, qx, qy, qz, s0, s1, s2)
                 rz = 1.0 / z
                 rx = x * rz
                 ry = y * rz
                 clx = rx < -limxn or rx > limxp
                 cly = ry < -limyn or ry > limyp
-                tx = z * min(limxp, max(-limxn, rx))
-                ty = z * min(limyp, max(-limyn, ry))
-                j00 = fx * rz
-                j02 = -fx * tx * rz * rz
-                j11 = fy * rz
-                j12 = -fy * ty * rz * rz
-                a00 = j00 * Rcw[0, 0] + j02 * Rcw[2, 0]
-                a01 = j00 * Rcw[0, 1] + j02 * Rcw[2, 1]
-                a02 = j00 * Rcw[0, 2] + j02 * Rcw[2, 2]
-                a10 = j11 * Rcw[1, 0] + j12 * Rcw[2, 0]
-                a11 = j11 * Rcw[1, 1] + j12 * Rcw[2, 1]
-                a12 = j11 * Rcw[1, 2] + j12 * Rcw[2, 2]
-                u0 = S00 * a00 + S01 * a01 + S02 * a02
-                u1 = S01 * a00 + S11 * a01 + S12 * a02
-                u2 = S02 * a00 + S12 * a01 + S22 * a02
-                v0 = S00 * a10 + S01 * a11 + S02 * a12
-                v1 = S01 * a10 + S11 * a11 + S12 * a12
-                v2 = S02 * a10 + S12 * a11 + S22 * a12
-                ca = a00 * u0 + a01 * u1 + a02 * u2 + eps2d
-                cb = a10 * u0 + a11 * u1 + a12 * u2
-                cc = a10 * v0 + a11 * v1 + a12 * v2 + eps2d
+                (tx, ty, j00, j02, j11, j12, a00, a01, a02, a10, a11, a12, u0, u1, u2, v0, v1, v2, ca, cb,
+                 cc) = _covariance2d(S00, S01, S02, S11, S12, S22, Rcw, fx, fy, z, rx, ry, rz, limxp, limxn, limyp,
+                                     limyn, eps2d)
                 idet = 1.0 / (ca * cc - cb * cb)
                 qa = cc * idet
                 qb = -cb * idet
