@@ -12,7 +12,7 @@
   With the default, threads waiting at a parallel region's barrier keep their cores busy, so a run sharing the
   cores with anything else starves its own working threads. Measured on the 2-core VM (2026-12-06,
   ``benchmarks/bench_mapping.py --throughput``, whole-image step at 320x240, medians): alone 56-60 ms either way
-  (three runs each, interleaved); beside a process that keeps one core busy 322-380 ms with the default,
+  (six runs each, interleaved); beside a process that keeps one core busy 322-380 ms with the default,
   141-143 ms with 10000 (1000: 106-111 ms beside it, but 64-68 ms alone).
 
 Set through the environment, because numba reads its configuration from it when imported and re-reads it
