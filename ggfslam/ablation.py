@@ -10,6 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ggfslam.batch.plan import Plan, build_plan
+from ggfslam.batch.results import summarize
 from ggfslam.errors import ConfigError
 
 VARIANTS: dict[str, list[str]] = {  # name -> the switches of the variant
@@ -20,37 +21,66 @@ VARIANTS: dict[str, list[str]] = {  # name -> the switches of the variant
 LABELS = {"base": "base", "ggf": "+GGF", "ggf_gcgr": "+GGF+GCGR"}
 
 
+REPEAT_JITTER_PX = 0.001
+"""``tracking.keypoint_jitter_px`` of repeated ablation runs unless given: a thousandth of a pixel, far below the
+keypoints' noise, so each seed is another draw of the trajectory rather than the same one."""
+
+
 def ablation_plan(configs: list[str | Path], out: str | Path, variants: list[str] | None = None,
-                  overrides: list[str] | None = None, num_cpus: float = 2) -> Plan:
-    """The ablation as a batch plan: ``variants`` (default all three) of every config, ``overrides`` in each."""
+                  overrides: list[str] | None = None, num_cpus: float = 2, repeats: int = 1,
+                  keypoint_jitter: float | None = None) -> Plan:
+    """The ablation as a batch plan: ``variants`` (default all three) of every config, ``overrides`` in each; with
+    ``repeats`` > 1, seeds 0 .. repeats - 1 of each, their keypoints jittered by ``keypoint_jitter`` px
+    (default ``REPEAT_JITTER_PX``; the tracker reads the seed only through the jitter)."""
     variants = variants or list(VARIANTS)
     unknown = [v for v in variants if v not in VARIANTS]
     if unknown:
         raise ConfigError(f"unknown ablation variant {unknown[0]!r}; choose from {', '.join(VARIANTS)}")
-    data = {"name": "ablation (paper Table 5)", "sequences": [str(c) for c in configs], "set": list(overrides or []),
-            "variants": {v: VARIANTS[v] for v in variants}, "num_cpus": num_cpus}
+    if repeats < 1:
+        raise ConfigError(f"repeats must be at least 1, got {repeats}")
+    jitter = keypoint_jitter if keypoint_jitter is not None else (REPEAT_JITTER_PX if repeats > 1 else 0.0)
+    overrides = list(overrides or []) + ([f"tracking.keypoint_jitter_px={jitter}"] if jitter > 0 else [])
+    data = {"name": "ablation (paper Table 5)", "sequences": [str(c) for c in configs], "set": overrides,
+            "variants": {v: VARIANTS[v] for v in variants}, "num_cpus": num_cpus, "repeats": repeats}
     return build_plan(data, "ggfslam bench", Path.cwd(), Path(out).resolve())
 
 
 def format_table(rows: list[dict]):
-    """A rich Table of the rows, with the ATE change against each sequence's base (or first) variant."""
+    """A rich Table of the rows, with the ATE change against each sequence's base (or first) variant; with repeated
+    seeds one line per (sequence, variant): mean ± sample standard deviation over its finished runs."""
     from rich.table import Table
 
+    repeated = any(r["seed"] is not None for r in rows)
     table = Table("sequence", "variant", "PSNR dB at WxH", "SSIM", "depth L1 cm", "ATE RMSE cm", "ATE vs base",
-                  "tracking fps", "fps vs base", "status", title="ablation (paper Table 5)")
+                  "tracking fps", "fps vs base", "runs" if repeated else "status", title="ablation (paper Table 5)")
+    lines = summarize(rows) if repeated else rows
     ref = {}
-    for r in rows:
+    for r in lines:
         ref.setdefault(r["sequence"], r)
         if r["variant"] == "base":
             ref[r["sequence"]] = r
-    for r in rows:
+
+    def fig(r: dict, col: str, fmt: str) -> str:
+        if not repeated:
+            return fmt.format(r[col])
+        return f"{fmt.format(r[col + '_mean'])} ± {fmt.format(r[col + '_std'])}"
+
+    def val(r: dict, col: str) -> float:
+        return r[col + "_mean"] if repeated else r[col]
+
+    for r in lines:
         b = ref[r["sequence"]]
+        if repeated:
+            status = f"{r['finished']}/{r['runs']}"
+        else:
+            status = r["status"] if r["status"] == "finished" else f"{r['status']}: {r.get('error') or ''}"
         table.add_row(r["sequence"], LABELS.get(r["variant"], r["variant"]),
-                      f"{r['psnr']:.2f} at {r.get('resolution', '-')}", f"{r['ssim']:.3f}", f"{r['depth_l1_cm']:.2f}",
-                      f"{r['ate_rmse_cm']:.2f}", f"{100 * (r['ate_rmse_cm'] / b['ate_rmse_cm'] - 1):+.0f}%",
-                      f"{r['tracking_fps']:.1f}", f"{100 * r['tracking_fps'] / b['tracking_fps']:.0f}%",
-                      r["status"] if r["status"] == "finished" else f"{r['status']}: {r.get('error') or ''}")
+                      f"{fig(r, 'psnr', '{:.2f}')} at {r.get('resolution', '-')}", fig(r, "ssim", "{:.3f}"),
+                      fig(r, "depth_l1_cm", "{:.2f}"), fig(r, "ate_rmse_cm", "{:.2f}"),
+                      f"{100 * (val(r, 'ate_rmse_cm') / val(b, 'ate_rmse_cm') - 1):+.0f}%",
+                      fig(r, "tracking_fps", "{:.1f}"),
+                      f"{100 * val(r, 'tracking_fps') / val(b, 'tracking_fps'):.0f}%", status)
     return table
 
 
-__all__ = ["VARIANTS", "LABELS", "ablation_plan", "format_table"]
+__all__ = ["VARIANTS", "LABELS", "REPEAT_JITTER_PX", "ablation_plan", "format_table"]

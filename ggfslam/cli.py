@@ -347,13 +347,19 @@ def bench(
     num_cpus: float = typer.Option(2, "--num-cpus", help="CPUs (and threads) of each run (2: one run at a time on "
                                    "two cores, so frames/s compare across variants)."),
     retries: int = typer.Option(0, "--retries", help="Run a failed run again up to N times."),
+    repeats: int = typer.Option(1, "--repeats", min=1, help="Runs of each variant (seeds 0 .. N-1); the table shows "
+                                "mean ± standard deviation. A trajectory can move by centimetres under tiny "
+                                "perturbations (fr3/cabinet: 1.9-3.1 cm), so one run is one draw."),
+    keypoint_jitter: Optional[float] = typer.Option(
+        None, "--keypoint-jitter", help="tracking.keypoint_jitter_px of every run (default: 0.001 px with "
+        "--repeats > 1, else 0): what makes the seeds draw different trajectories."),
 ):
     """Ablation of the paper's Table 5: base / +GGF / +GGF+GCGR on each sequence, run as a batch plan."""
     from ggfslam.ablation import ablation_plan, format_table
     from ggfslam.batch import run_batch
 
     names = [v.strip() for v in variants.split(",") if v.strip()]
-    plan = ablation_plan(configs, out, names, set_, num_cpus)
+    plan = ablation_plan(configs, out, names, set_, num_cpus, repeats, keypoint_jitter)
     rows = run_batch(plan, out, ray=ray, retries=retries, cpus=cpus, console=console)
     _wide(console).print(format_table(rows))
     _report_failures(rows, out)

@@ -69,7 +69,7 @@ def make_tracker(config: Config, dataset: RGBDDataset):
     from ggfslam.frontend.tracker import OrbTracker
 
     backend = Backend(dataset.camera, config.tracking, config.backend)
-    return OrbTracker(dataset.camera, config.tracking, backend)
+    return OrbTracker(dataset.camera, config.tracking, backend, config.runtime.seed)
 
 
 def _progress(enabled: bool):

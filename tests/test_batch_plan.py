@@ -208,6 +208,35 @@ def test_bench_is_the_table5_plan(tmp_path, monkeypatch):
         ablation_plan(configs, tmp_path / "out", ["gcgr"])
 
 
+def test_repeated_bench_runs_draw_different_trajectories_through_the_keypoint_jitter(tmp_path, monkeypatch):
+    monkeypatch.chdir(REPO)
+    configs = ["configs/tum/fr3_cabinet_kf.yaml"]
+    plan = ablation_plan(configs, tmp_path / "out", ["base", "ggf_gcgr"], repeats=3)
+    assert [(r.key, r.seed) for r in plan.runs] == [(f"fr3_cabinet_kf/{v}/seed{k}", k)
+                                                    for v in ("base", "ggf_gcgr") for k in range(3)]
+    assert all(r.config.tracking.keypoint_jitter_px == 0.001 and r.config.runtime.seed == r.seed for r in plan.runs)
+    # one run each: no jitter unless asked for; an explicit 0 keeps repeated runs on one trajectory
+    assert all(r.config.tracking.keypoint_jitter_px == 0 for r in ablation_plan(configs, tmp_path / "o1").runs)
+    plan0 = ablation_plan(configs, tmp_path / "o2", ["base"], repeats=2, keypoint_jitter=0.0)
+    assert all(r.config.tracking.keypoint_jitter_px == 0 for r in plan0.runs)
+    with pytest.raises(ConfigError, match="repeats must be at least 1"):
+        ablation_plan(configs, tmp_path / "o3", repeats=0)
+
+
+def test_the_repeated_ablation_table_compares_means():
+    from rich.console import Console
+
+    rows = [_row("s/base", 0, 2.0, 24.0), _row("s/base", 1, 3.0, 25.0),
+            _row("s/ggf_gcgr", 0, 2.0, 24.0), _row("s/ggf_gcgr", 1, 2.0, 24.0), _row("s/ggf_gcgr", 2, 2.0, 24.0)]
+    console = Console(record=True, width=220)
+    console.print(format_table(rows))
+    text = console.export_text()
+    lines = [ln for ln in text.splitlines() if ln.startswith("│ s ")]
+    assert len(lines) == 2  # one line per variant
+    assert "2.50 ± 0.71" in lines[0] and "24.50 ± 0.71 at 640x480" in lines[0] and "2/2" in lines[0]
+    assert "2.00 ± 0.00" in lines[1] and "-20%" in lines[1] and "3/3" in lines[1]
+
+
 @pytest.mark.parametrize("name", ["table5.yaml", "example_sweep.yaml"])
 def test_the_shipped_plans_validate(tmp_path, name, monkeypatch):
     monkeypatch.setenv("GGFSLAM_DATA", str(tmp_path))  # configs name their data through it; not read here

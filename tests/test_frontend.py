@@ -129,6 +129,49 @@ def test_orb_keypoints_cover_the_image():
     np.testing.assert_allclose(u, feats.uv[valid, 0], atol=1e-6)
 
 
+def test_keypoint_jitter_is_a_repeatable_subpixel_perturbation_drawn_from_the_seed():
+    seq = SyntheticSequence(n_frames=2, width=320, height=240, seed=0)
+    f = seq[0]
+    plain = OrbExtractor(seq.camera, TrackingConfig(n_features=800)).extract(f.rgb, f.depth, 0)
+    jcfg = TrackingConfig(n_features=800, keypoint_jitter_px=1e-3)
+
+    def jittered(seed, index):
+        return OrbExtractor(seq.camera, jcfg, seed).extract(f.rgb, f.depth, index)
+
+    a = jittered(0, 0)
+    d = a.uv - plain.uv  # [N, 2]
+    assert 0.8e-3 < d.std() < 1.2e-3 and np.abs(d).max() < 6e-3 and abs(d.mean()) < 1e-4
+    # the same keypoints, descriptors and depths: only their positions moved
+    assert np.array_equal(a.descriptors, plain.descriptors) and np.array_equal(a.depth, plain.depth)
+    # back-projected from the moved positions (they reproject onto them)
+    p = a.points_cam[a.has_depth]
+    np.testing.assert_allclose(seq.camera.fx * p[:, 0] / p[:, 2] + seq.camera.cx, a.uv[a.has_depth, 0], atol=1e-6)
+    assert np.array_equal(jittered(0, 0).uv, a.uv)  # repeatable
+    assert not np.array_equal(jittered(1, 0).uv, a.uv) and not np.array_equal(jittered(0, 1).uv, a.uv)
+    # pickled (checkpoints) with its seed
+    import pickle
+    ex = pickle.loads(pickle.dumps(OrbExtractor(seq.camera, jcfg, 7)))
+    assert ex.seed == 7 and np.array_equal(ex.extract(f.rgb, f.depth, 0).uv, jittered(7, 0).uv)
+
+
+def test_keypoint_jitter_config_is_checked():
+    with pytest.raises(ValueError, match="keypoint_jitter_px must be in"):
+        TrackingConfig(keypoint_jitter_px=-1e-3)
+    with pytest.raises(ValueError, match="keypoint_jitter_px must be in"):
+        TrackingConfig(keypoint_jitter_px=0.5)
+
+
+def test_runs_draw_their_keypoint_jitter_from_the_runtime_seed():
+    from ggfslam.config import config_from_dict
+    from ggfslam.data.sources import open_dataset_from_config
+    from ggfslam.slam import make_tracker
+
+    cfg = config_from_dict({"dataset": {"kind": "synthetic", "synthetic": {"n_frames": 2, "width": 160, "height": 120}},
+                            "tracking": {"keypoint_jitter_px": 1e-3}, "runtime": {"seed": 5}})
+    tracker = make_tracker(cfg, open_dataset_from_config(cfg.dataset))
+    assert tracker.extractor.seed == 5 and tracker.extractor.cfg.keypoint_jitter_px == 1e-3
+
+
 def _track(frames, camera, tcfg=None, bcfg=None):
     tcfg = tcfg or TrackingConfig(n_features=1000)
     backend = Backend(camera, tcfg, bcfg or BackendConfig())

@@ -32,8 +32,8 @@ class Features:
 class OrbExtractor:
     """OpenCV ORB, then bucketing over a grid so keypoints cover the whole image rather than its busiest corner."""
 
-    def __init__(self, camera: Camera, cfg: TrackingConfig):
-        self.camera, self.cfg = camera, cfg
+    def __init__(self, camera: Camera, cfg: TrackingConfig, seed: int = 0):
+        self.camera, self.cfg, self.seed = camera, cfg, seed
         # ask for more corners than kept, so sparse cells still get their share after bucketing
         self.orb = cv2.ORB_create(nfeatures=2 * cfg.n_features, scaleFactor=cfg.scale_factor, nlevels=cfg.n_levels,
                                   fastThreshold=cfg.fast_threshold, edgeThreshold=19, patchSize=31)
@@ -43,10 +43,10 @@ class OrbExtractor:
         self.level_scale = cfg.scale_factor ** np.arange(cfg.n_levels)  # [L]
 
     def __getstate__(self) -> dict:  # cv2.ORB does not pickle: rebuilt from the settings (checkpoints)
-        return {"camera": self.camera, "cfg": self.cfg}
+        return {"camera": self.camera, "cfg": self.cfg, "seed": self.seed}
 
     def __setstate__(self, state: dict) -> None:
-        self.__init__(state["camera"], state["cfg"])
+        self.__init__(state["camera"], state["cfg"], state.get("seed", 0))
 
     def _bucket(self, kps: list) -> list:
         if len(kps) <= self.cfg.n_features:
@@ -66,8 +66,9 @@ class OrbExtractor:
         keep = np.lexsort((-resp, rank))[: self.cfg.n_features]
         return [kps[i] for i in np.sort(keep)]
 
-    def extract(self, rgb: np.ndarray, depth: np.ndarray) -> Features:
-        """ORB keypoints, descriptors and depth of a frame (rgb [H, W, 3] in [0, 1], depth [H, W] metres)."""
+    def extract(self, rgb: np.ndarray, depth: np.ndarray, frame_index: int = 0) -> Features:
+        """ORB keypoints, descriptors and depth of a frame (rgb [H, W, 3] in [0, 1], depth [H, W] metres);
+        ``frame_index`` draws the frame's keypoint jitter (``keypoint_jitter_px``), the same on every run."""
         gray = cv2.cvtColor((np.clip(rgb, 0, 1) * 255).astype(np.uint8), cv2.COLOR_RGB2GRAY)
         kps = self.orb.detect(gray, None)
         if len(kps) < self.cfg.n_features // 2:  # low-texture view: lower the FAST threshold, like ORB-SLAM
@@ -82,6 +83,9 @@ class OrbExtractor:
         vi = np.clip(np.round(uv[:, 1]).astype(int), 0, depth.shape[0] - 1)
         z = depth[vi, ui].astype(np.float64)  # [N]
         z[(z < self.cfg.depth_min) | (z > self.cfg.depth_max) | ~np.isfinite(z)] = 0.0
+        if self.cfg.keypoint_jitter_px > 0:  # after the depth lookup: the jitter moves no keypoint to another pixel
+            rng = np.random.default_rng([self.seed, frame_index])
+            uv = uv + rng.normal(0.0, self.cfg.keypoint_jitter_px, uv.shape)  # [N, 2]
         return Features(uv, octave, desc, z, backproject_points(uv, z, self.camera))
 
 

@@ -44,10 +44,10 @@ class OrbTracker:
 
     name = "orb"
 
-    def __init__(self, camera: Camera, cfg: TrackingConfig, backend: Backend):
+    def __init__(self, camera: Camera, cfg: TrackingConfig, backend: Backend, seed: int = 0):
         self.camera, self.cfg, self.backend = camera, cfg, backend
         self.map = backend.map
-        self.extractor = OrbExtractor(camera, cfg)
+        self.extractor = OrbExtractor(camera, cfg, seed)  # the seed draws the keypoint jitter only (off by default)
         self.level_scale = cfg.scale_factor ** np.arange(cfg.n_levels)  # [L]
         self.state = TrackingState.NOT_INITIALIZED
         self.records: list[FrameRecord] = []
@@ -269,7 +269,7 @@ class OrbTracker:
     # --- main entry -----------------------------------------------------------------------------------
     def track(self, frame: Frame) -> TrackResult:
         """Track one frame; returns its pose estimate now (the final one comes from ``trajectory()``)."""
-        F = self.extractor.extract(frame.rgb, frame.depth)
+        F = self.extractor.extract(frame.rgb, frame.depth, frame.index)
         if self.state == TrackingState.NOT_INITIALIZED:
             return self._initialize(frame, F)
         if self.cfg.keyframe_sharpness_ratio > 0:
