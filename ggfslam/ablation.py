@@ -7,10 +7,11 @@ reused and interrupted ones resumed. ``configs/plans/table5.yaml`` is the same p
 """
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 from ggfslam.batch.plan import Plan, build_plan
-from ggfslam.batch.results import summarize
+from ggfslam.batch.results import format_cell, format_spread, summarize
 from ggfslam.errors import ConfigError
 
 VARIANTS: dict[str, list[str]] = {  # name -> the switches of the variant
@@ -61,12 +62,13 @@ def format_table(rows: list[dict]):
             ref[r["sequence"]] = r
 
     def fig(r: dict, col: str, fmt: str) -> str:
-        if not repeated:
-            return fmt.format(r[col])
-        return f"{fmt.format(r[col + '_mean'])} ± {fmt.format(r[col + '_std'])}"
+        return format_spread(r, col, fmt) if repeated else format_cell(r[col], fmt)
 
     def val(r: dict, col: str) -> float:
         return r[col + "_mean"] if repeated else r[col]
+
+    def change(a: float, b: float, fmt: str) -> str:
+        return "-" if math.isnan(a) or math.isnan(b) or b == 0 else fmt.format(a / b)
 
     for r in lines:
         b = ref[r["sequence"]]
@@ -77,9 +79,9 @@ def format_table(rows: list[dict]):
         table.add_row(r["sequence"], LABELS.get(r["variant"], r["variant"]),
                       f"{fig(r, 'psnr', '{:.2f}')} at {r.get('resolution', '-')}", fig(r, "ssim", "{:.3f}"),
                       fig(r, "depth_l1_cm", "{:.2f}"), fig(r, "ate_rmse_cm", "{:.2f}"),
-                      f"{100 * (val(r, 'ate_rmse_cm') / val(b, 'ate_rmse_cm') - 1):+.0f}%",
+                      change(val(r, "ate_rmse_cm") - val(b, "ate_rmse_cm"), val(b, "ate_rmse_cm"), "{:+.0%}"),
                       fig(r, "tracking_fps", "{:.1f}"),
-                      f"{100 * val(r, 'tracking_fps') / val(b, 'tracking_fps'):.0f}%", status)
+                      change(val(r, "tracking_fps"), val(b, "tracking_fps"), "{:.0%}"), status)
     return table
 
 

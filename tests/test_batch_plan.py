@@ -227,14 +227,16 @@ def test_the_repeated_ablation_table_compares_means():
     from rich.console import Console
 
     rows = [_row("s/base", 0, 2.0, 24.0), _row("s/base", 1, 3.0, 25.0),
-            _row("s/ggf_gcgr", 0, 2.0, 24.0), _row("s/ggf_gcgr", 1, 2.0, 24.0), _row("s/ggf_gcgr", 2, 2.0, 24.0)]
+            _row("s/ggf_gcgr", 0, 2.0, 24.0), _row("s/ggf_gcgr", 1, 2.0, 24.0), _row("s/ggf_gcgr", 2, 2.0, 24.0),
+            _row("s/ggf", 0, None, None, status="failed")]
     console = Console(record=True, width=220)
     console.print(format_table(rows))
     text = console.export_text()
     lines = [ln for ln in text.splitlines() if ln.startswith("│ s ")]
-    assert len(lines) == 2  # one line per variant
+    assert len(lines) == 3  # one line per variant
     assert "2.50 ± 0.71" in lines[0] and "24.50 ± 0.71 at 640x480" in lines[0] and "2/2" in lines[0]
     assert "2.00 ± 0.00" in lines[1] and "-20%" in lines[1] and "3/3" in lines[1]
+    assert "0/1" in lines[2] and "nan" not in lines[2]  # a variant with no finished run: dashes
 
 
 @pytest.mark.parametrize("name", ["table5.yaml", "example_sweep.yaml"])

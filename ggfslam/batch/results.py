@@ -90,8 +90,16 @@ def write_results(out: Path, plan_name: str, rows: list[dict], extra: dict | Non
     write_text_atomic(out / "results.json", json.dumps(doc, indent=1, allow_nan=False) + "\n")
 
 
-def _cell(v: float, fmt: str) -> str:
+def format_cell(v: float, fmt: str) -> str:
+    """A figure formatted with ``fmt``; "-" where it is missing (None or NaN)."""
     return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else fmt.format(v)
+
+
+def format_spread(summary: dict, col: str, fmt: str) -> str:
+    """``mean ± spread`` of column ``col`` in a ``summarize`` line; "-" where none of its runs finished."""
+    if not summary["finished"]:
+        return "-"
+    return f"{format_cell(summary[f'{col}_mean'], fmt)} ± {format_cell(summary[f'{col}_std'], fmt)}"
 
 
 def results_table(rows: list[dict], title: str = "batch"):
@@ -104,13 +112,12 @@ def results_table(rows: list[dict], title: str = "batch"):
                   title=title)
     if repeated:
         for s in summarize(rows):
-            cells = [f"{_cell(s[f'{c}_mean'], fmt)} ± {_cell(s[f'{c}_std'], fmt)}" if s["finished"] else "-"
-                     for c, _, _, _, fmt in METRIC_COLUMNS]
+            cells = [format_spread(s, c, fmt) for c, _, _, _, fmt in METRIC_COLUMNS]
             table.add_row(s["sequence"], s["variant"], f"{s['finished']}/{s['runs']}", *cells[:6], s["resolution"],
                           *cells[6:])
         return table
     for r in rows:
-        cells = [_cell(r[c], fmt) for c, _, _, _, fmt in METRIC_COLUMNS]
+        cells = [format_cell(r[c], fmt) for c, _, _, _, fmt in METRIC_COLUMNS]
         status = r["status"] if r["status"] == "finished" else f"[red]{r['status']}[/red]"
         table.add_row(r["sequence"], r["variant"], status, *cells[:6], r["resolution"], *cells[6:])
     return table
@@ -120,12 +127,13 @@ def run_line(row: dict) -> str:
     """The progress line printed when a run ends."""
     if row["status"] != "finished":
         return f"{row['key']}: {row['status']}: {row['error']}"
-    parts = [f"ATE {_cell(row['ate_rmse_cm'], '{:.2f}')} cm",
-             f"PSNR {_cell(row['psnr'], '{:.2f}')} dB at {row['resolution']}",
-             f"{_cell(row['tracking_fps'], '{:.1f}')} frames/s", f"wall {_cell(row['wall_s'], '{:.0f}')} s"]
+    parts = [f"ATE {format_cell(row['ate_rmse_cm'], '{:.2f}')} cm",
+             f"PSNR {format_cell(row['psnr'], '{:.2f}')} dB at {row['resolution']}",
+             f"{format_cell(row['tracking_fps'], '{:.1f}')} frames/s",
+             f"wall {format_cell(row['wall_s'], '{:.0f}')} s"]
     what = {"skipped": "finished earlier", "resumed": "resumed, finished"}.get(row["action"], "finished")
     return f"{row['key']}: {what}: " + ", ".join(parts)
 
 
-__all__ = ["COLUMNS", "METRIC_COLUMNS", "make_row", "metric_columns", "results_table", "run_line", "summarize",
-           "write_results"]
+__all__ = ["COLUMNS", "METRIC_COLUMNS", "format_cell", "format_spread", "make_row", "metric_columns", "results_table",
+           "run_line", "summarize", "write_results"]
