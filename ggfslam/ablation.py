@@ -37,8 +37,6 @@ def ablation_plan(configs: list[str | Path], out: str | Path, variants: list[str
     unknown = [v for v in variants if v not in VARIANTS]
     if unknown:
         raise ConfigError(f"unknown ablation variant {unknown[0]!r}; choose from {', '.join(VARIANTS)}")
-    if repeats < 1:
-        raise ConfigError(f"repeats must be at least 1, got {repeats}")
     jitter = keypoint_jitter if keypoint_jitter is not None else (REPEAT_JITTER_PX if repeats > 1 else 0.0)
     overrides = list(overrides or []) + ([f"tracking.keypoint_jitter_px={jitter}"] if jitter > 0 else [])
     data = {"name": "ablation (paper Table 5)", "sequences": [str(c) for c in configs], "set": overrides,
