@@ -111,6 +111,29 @@ def test_association_joins_the_same_plane_and_separates_others():
     assert sorted(smap.plane_observations[0]) == [0, 1]
 
 
+def test_a_wall_seen_again_after_a_lap_rejoins_its_plane_despite_the_drift():
+    # the camera leaves a wall and comes back to it after a lap whose drift moved its estimate 10 cm towards the
+    # wall and turned it 2 degrees: the wall must join its first plane (this closes the loop through the plane,
+    # as on TUM fr3/cabinet), while a plane 20 cm in front of the wall is another surface
+    smap = SlamMap()
+    cfg = BackendConfig()
+    wall = np.r_[_unit([0.0, 0.0, -1.0]), 3.0]
+    _plane_keyframe(smap, 0, np.eye(4), [FLOOR_W, wall])
+    assert associate_planes(smap, 0, cfg) == [0, 1]
+    T_true = make_pose(Rotation.from_euler("y", 20, degrees=True).as_matrix(), [0.5, 0.0, 0.4])
+    _plane_keyframe(smap, 1, T_true, [wall])
+    drift = make_pose(Rotation.from_euler("x", 2, degrees=True).as_matrix(), [0.0, 0.0, 0.0])
+    drift[:3, 3] = 0.10 * wall[:3] @ T_true[:3, :3] * -1.0  # 10 cm along the wall's normal, in the camera frame
+    smap.keyframes[1].T_wc = T_true @ drift
+    seen = plane_to_camera(wall, smap.keyframes[1].T_wc)
+    assert abs(seen[3] - plane_to_camera(wall, T_true)[3]) > 0.09  # the prediction is ~10 cm off
+    assert associate_planes(smap, 1, cfg) == [1]
+    front = wall + np.array([0, 0, 0, -0.2])  # parallel to the wall, 20 cm nearer the camera
+    _plane_keyframe(smap, 2, np.eye(4), [front])
+    assert associate_planes(smap, 2, cfg) == [2]
+    assert sorted(smap.plane_observations[1]) == [0, 1]
+
+
 def test_bundle_adjustment_with_planes_fixes_a_tilted_keyframe():
     # a landmark-rich map whose newest keyframe is tilted; the floor plane, seen by all, pulls it straight
     rng = np.random.default_rng(3)
