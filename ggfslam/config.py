@@ -320,16 +320,16 @@ class BackendConfig(_Section):
     plane_sigmas: tuple[float, float] = (0.02, 0.02)
     """Noise of a plane observation: normal direction (rad) and distance (m). Stiffer planes pull the trajectory
     towards the depth camera's geometry: at (0.005, 0.005) the registered 7-Scenes kitchen's ATE fell 4.84 -> 3.40 cm
-    but its map lost 0.8 dB, the unregistered kitchen rose 3.69 -> 4.11 cm and rendered Replica 0.51 -> 1.07 cm
-    (planes fitted across small steps held too hard); see docs/MEASUREMENTS.md, planes."""
+    but its map lost 0.8 dB, the unregistered kitchen rose 3.69 -> 4.11 cm and rendered Replica 0.51 -> 1.07 cm;
+    see docs/MEASUREMENTS.md, planes."""
     plane_match_deg: float = 10.0
     """A detected plane joins a map plane whose predicted normal is within this angle (degrees) ..."""
     plane_match_distance: float = 0.12
     """... and whose predicted distance from the camera differs by at most this much (m); the closest such plane
     wins. Where the camera comes back to a surface after a lap, this gate is what lets the plane close the loop: on
     TUM fr3/cabinet, which no point loop closes, the wall seen first is joined again 40 frames later only while the
-    drift across the lap stays inside it (at 0.08 one draw in ten missed it by 11 cm and kept two planes for one
-    wall: ATE 3.02 -> 2.08 cm at 0.12; 0.12 since 2026-12-06, 0.08 before; docs/MEASUREMENTS.md, planes)."""
+    drift across the lap stays inside it (at 0.08 one draw in ten predicted the wall 10.6 cm off and kept two planes
+    for it: ATE 3.02 -> 2.08 cm at 0.12; 0.12 since 2026-12-06, 0.08 before; docs/MEASUREMENTS.md, planes)."""
     huber_stereo: float = 2.796
     """Huber threshold of the whitened RGB-D (stereo) residual, sqrt(chi2_0.95(3 dof)) as in ORB-SLAM."""
     huber_mono: float = 2.448
