@@ -7,7 +7,6 @@ reused and interrupted ones resumed. ``configs/plans/table5.yaml`` is the same p
 """
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 from ggfslam.batch.plan import Plan, build_plan
@@ -66,7 +65,7 @@ def format_table(rows: list[dict]):
         return r[col + "_mean"] if repeated else r[col]
 
     def change(a: float, b: float, fmt: str) -> str:
-        return "-" if math.isnan(a) or math.isnan(b) or b == 0 else fmt.format(a / b)
+        return "-" if b == 0 else format_cell(a / b, fmt)  # NaN (no finished run) propagates to a dash
 
     for r in lines:
         b = ref[r["sequence"]]

@@ -122,8 +122,8 @@ def test_a_wall_seen_again_after_a_lap_rejoins_its_plane_despite_the_drift():
     assert associate_planes(smap, 0, cfg) == [0, 1]
     T_true = make_pose(Rotation.from_euler("y", 20, degrees=True).as_matrix(), [0.5, 0.0, 0.4])
     _plane_keyframe(smap, 1, T_true, [wall])
-    drift = make_pose(Rotation.from_euler("x", 2, degrees=True).as_matrix(), [0.0, 0.0, 0.0])
-    drift[:3, 3] = 0.10 * wall[:3] @ T_true[:3, :3] * -1.0  # 10 cm along the wall's normal, in the camera frame
+    # 10 cm along the wall's normal (R^T n: the normal in the camera frame) and 2 degrees about x
+    drift = make_pose(Rotation.from_euler("x", 2, degrees=True).as_matrix(), -0.10 * wall[:3] @ T_true[:3, :3])
     smap.keyframes[1].T_wc = T_true @ drift
     seen = plane_to_camera(wall, smap.keyframes[1].T_wc)
     assert abs(seen[3] - plane_to_camera(wall, T_true)[3]) > 0.09  # the prediction is ~10 cm off
