@@ -33,19 +33,22 @@ Pipeline (one render)
    ``exp(power)`` comes from multiplicative recurrences (power is quadratic in x and y): libm ``exp``
    runs three times per (Gaussian, tile) pair, or twice per row in "chord" mode for very elongated,
    diagonal ellipses whose box corners would underflow. Channels ``[r, g, b, z, extras...]``; the
-   background goes to the colour channels only. Three copies of the pixel loop: no extras, exactly four
-   (the caller pads one to three; features and gradient sums in registers) and any other count; they
-   differ only in how features are summed and share the per-pixel step (``_blend``; backward
-   ``_unblend``, ``_unblend_grad``).
+   background goes to the colour channels only. With no extras or exactly four (the caller pads one to
+   three) a Gaussian's row in a tile is evaluated on 16 (or 8) pixels of the tile row at once, in vector
+   lanes (``_blend_lanes``; see the comment above it): per lane, exp(power) moves from row to row by its
+   own factor. Any other count of extras takes a scalar pixel loop (``_blend``;
+   backward ``_unblend``, ``_unblend_grad``) with the recurrence along each row.
 5. ``raster_backward`` (parallel over tiles): back to front over each pixel's contributors, with
-   the same recurrences (bit-identical alphas), transmittance recovered by division by ``1 - alpha``
-   (alpha <= 0.99). Per pixel a single scalar ``R = dL/dC . (what lies behind) + T_final (bg . dL/dC
-   - dL/dalpha_acc)`` carries everything behind. Per-pair gradient sums are written once per pair.
+   the same recurrences as the forward (bit-identical alphas), transmittance recovered by division by
+   ``1 - alpha`` (alpha <= 0.99). Per pixel a single scalar ``R = dL/dC . (what lies behind) + T_final
+   (bg . dL/dC - dL/dalpha_acc)`` carries everything behind. Per-pair gradient sums are written once per
+   pair; the lane path keeps them per lane (sums over y, times 1, dy, dy^2) and sums over x at the pair's
+   end, where dx is the lane's.
 6. ``project_backward`` (parallel over visible Gaussians): sums its pairs, then the chain rule through
    conic -> 2D covariance -> (Jacobian, world-to-camera rotation, 3D covariance) -> quaternion, scales,
    and through the pixel centre and depth to the mean and the pose (dL/dR_cw, dL/dt_cw summed per chunk).
 
-Numerics: inputs float32; projection and compositing arithmetic in float64 scalars; records, images and
+Numerics: inputs float32; projection and compositing arithmetic in float64; records, images and
 per-pair gradients stored as float32; fused multiply-add allowed (``fastmath={"contract"}``, ~5 %). The alpha
 clamp at 0.99 has zero gradient where active (as torch's ``clamp``). Forward and backward kernels evaluate
 alpha with identical code (shared inline helpers, pure products along the recurrences), so they agree on
@@ -706,6 +709,173 @@ def _unblend_grad(T, Rr, p, fg, w, ti, iom, ga, dx, s0, s1, s2):
     return s0, s1, s2
 
 
+# Vector lanes (the C = 4 and C = 8 channel paths of both rasterizers): a Gaussian's row inside a tile is evaluated
+# on a window of lanes at once: the whole tile row (16 pixels), or 8 pixels where the Gaussian's box is at most 8
+# wide (the window starts at its first pixel, or at 8). Lanes outside the box carry exp(power) = 0, the loops are
+# branch-free, and LLVM vectorises them. Lane i's exp(power) moves to the next row by a per-lane factor (power is
+# quadratic, so the factor is exp(power(x, y+1) - power(x, y)), itself geometric in x and multiplied by exp(-c) per
+# row), set up once per (Gaussian, tile) pair by the multiplicative recurrences along the box's first row. A worker's
+# whole tile state lives in one float64 buffer at the constant offsets below, and row starts and window offsets are
+# masked into their ranges (planes padded by a row, lane arrays by half a row): then the compiler can prove the
+# planes disjoint and vectorises without runtime alias checks. Measured on captured renders of fr3/cabinet (large
+# Gaussians): forward compositing 74 -> 46 ms at 640x480, backward 85 -> 61 ms.
+NPIX = TILE * TILE
+ROW_MASK = np.uint64(NPIX - TILE)  # a row start inside the tile: 0, 16, ..., 240
+WIN_MASK = np.uint64(TILE - 1)  # an 8-lane window's offset: 0..8 (masked to 0..15)
+NLANE = TILE + TILE // 2  # lane arrays hold a window at offset <= 15
+PLANE = NPIX + TILE  # pixel planes hold a row start + window offset + lane <= 262
+L_G = np.uint64(0)  # [NLANE] the row's exp(power) per lane
+L_F = np.uint64(NLANE)  # [NLANE] per lane, the factor to the next row's exp(power)
+L_T = np.uint64(2 * NLANE)  # [PLANE] transmittance
+L_S = L_T + np.uint64(PLANE)  # [PLANE] forward: transmittance at the stop; backward: the remainder R
+L_L = L_T + np.uint64(2 * PLANE)  # [PLANE] last contributor (one past its pair index, as float64)
+L_C = L_T + np.uint64(3 * PLANE)  # [8, PLANE] forward: accumulated channels; backward: dL/d(channel)
+L_ACC = L_C + np.uint64(8 * PLANE)  # backward, per lane: [3, NLANE] dL/dpower sums (x 1, dy, dy^2), [8, NLANE] dL/dfeat
+LANE_BUF = int(L_ACC) + 11 * NLANE
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _lane(base, i):
+    """Buffer index of lane or plane entry i (unsigned: no negative-index wrapping, which stops vectorisation)."""
+    return base + np.uint64(i)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _plane(c, p):
+    """Buffer index of pixel p (0..NPIX-1) of channel plane c."""
+    return L_C + np.uint64(c * PLANE + p)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _window(gx0, gx1, x0):
+    """(offset, width) of the lane window that covers the box columns [gx0, gx1] of the tile starting at x0."""
+    if gx1 - gx0 < TILE // 2:
+        return min(gx0 - x0, TILE // 2), TILE // 2
+    return 0, TILE
+
+
+@njit(cache=True, nogil=True, inline="always", fastmath=FMA)
+def _lanes_start(tb, x0, gx0, gx1, G, E, F, ea, eb):
+    """Lanes of the pair's first row: exp(power) G at pixel gx0 times the x-step factor E (itself times ea per
+    pixel), and the row-step factor F at gx0 (times eb per pixel); zero outside [gx0, gx1]."""
+    for i in range(TILE):
+        tb[_lane(L_G, i)] = 0.0
+        tb[_lane(L_F, i)] = 0.0
+    for x in range(gx0, gx1 + 1):
+        tb[_lane(L_G, x - x0)] = G
+        tb[_lane(L_F, x - x0)] = F
+        G *= E
+        E *= ea
+        F *= eb
+
+
+@njit(cache=True, nogil=True, inline="always", fastmath=FMA)
+def _lanes_span(tb, x0, sx0, sx1, G, E, ea):
+    """Chord mode: lanes of one row from its span's recurrence (G at sx0, step E times ea); zero elsewhere."""
+    for i in range(TILE):
+        tb[_lane(L_G, i)] = 0.0
+    for x in range(sx0, sx1 + 1):
+        tb[_lane(L_G, x - x0)] = G
+        G *= E
+        E *= ea
+
+
+@njit(cache=True, nogil=True, inline="always", fastmath=FMA)
+def _lanes_next_row(tb, ws, n, ec):
+    """Moves the window's exp(power) lanes to the next row (n must not be a literal: with a constant trip count LLVM
+    unrolls this into scalar code instead of vectorising it)."""
+    for i in range(ws, ws + n):
+        tb[_lane(L_G, i)] *= tb[_lane(L_F, i)]
+    for i in range(ws, ws + n):
+        tb[_lane(L_F, i)] *= ec
+
+
+@njit(cache=True, nogil=True, inline="always", fastmath=FMA)
+def _blend_lanes(tb, pb, ws, n, o, f0, f1, f2, f3, f4, f5, f6, f7, kk, eight):
+    """``_blend`` on the window of n lanes (16, or 8 at offset ws) of the tile row starting at pixel pb, adding four
+    (eight) features times the weights into the channel planes; returns how many pixels stopped. Call it with
+    literal n and eight (it is inlined: they become constants, so the loop is vectorised)."""
+    upb = np.uint64(pb) & ROW_MASK
+    uws = np.uint64(ws) & WIN_MASK
+    nstop = 0
+    for i in range(n):
+        li = uws + np.uint64(i)
+        p = upb + li
+        tp = tb[L_T + p]
+        ga = o * tb[L_G + li]
+        alpha = ga if ga < ALPHA_MAX else ALPHA_MAX
+        alpha = alpha if alpha >= ALPHA_MIN else 0.0
+        nt = tp * (1.0 - alpha)
+        stop = (nt < T_MIN) & (tp != 0.0)
+        tb[L_S + p] = tp if stop else tb[L_S + p]
+        tb[L_T + p] = 0.0 if stop else nt
+        w = 0.0 if stop else alpha * tp
+        tb[_plane(0, p)] += f0 * w
+        tb[_plane(1, p)] += f1 * w
+        tb[_plane(2, p)] += f2 * w
+        tb[_plane(3, p)] += f3 * w
+        if eight:
+            tb[_plane(4, p)] += f4 * w
+            tb[_plane(5, p)] += f5 * w
+            tb[_plane(6, p)] += f6 * w
+            tb[_plane(7, p)] += f7 * w
+        tb[L_L + p] = kk if w > 0.0 else tb[L_L + p]
+        nstop += np.int64(stop)
+    return nstop
+
+
+@njit(cache=True, nogil=True, inline="always", fastmath=FMA)
+def _unblend_lanes(tb, pb, ws, n, o, f0, f1, f2, f3, f4, f5, f6, f7, kf, dy, eight):
+    """``_unblend`` and ``_unblend_grad`` on the window of n lanes (as ``_blend_lanes``) of the tile row starting at
+    pixel pb, for pair index kf (lanes where it lies behind the pixel's last contributor, or whose alpha is below
+    ALPHA_MIN, change nothing): moves T and R in front of the pair and adds, per lane, dL/dpower times 1, dy and
+    dy^2 and the weight times dL/d(feature) to the lane sums (the pair's sums over x are taken from the lanes when
+    the pair ends)."""
+    upb = np.uint64(pb) & ROW_MASK
+    uws = np.uint64(ws) & WIN_MASK
+    dy2 = dy * dy
+    for i in range(n):
+        li = uws + np.uint64(i)
+        p = upb + li
+        ga = o * tb[L_G + li]
+        alpha = ga if ga < ALPHA_MAX else ALPHA_MAX
+        ok = (alpha >= ALPHA_MIN) & (kf < tb[L_L + p])
+        iom = 1.0 / (1.0 - alpha)
+        tp = tb[L_T + p]
+        ti = tp * iom
+        w = alpha * ti
+        g0 = tb[_plane(0, p)]
+        g1 = tb[_plane(1, p)]
+        g2 = tb[_plane(2, p)]
+        g3 = tb[_plane(3, p)]
+        fg = f0 * g0 + f1 * g1 + f2 * g2 + f3 * g3
+        g4 = g5 = g6 = g7 = 0.0
+        if eight:
+            g4 = tb[_plane(4, p)]
+            g5 = tb[_plane(5, p)]
+            g6 = tb[_plane(6, p)]
+            g7 = tb[_plane(7, p)]
+            fg += f4 * g4 + f5 * g5 + f6 * g6 + f7 * g7
+        rr = tb[L_S + p]
+        dlda = ti * fg - rr * iom
+        tb[L_S + p] = rr + fg * w if ok else rr
+        tb[L_T + p] = ti if ok else tp
+        dpow = ga * dlda if ok & (ga <= ALPHA_MAX) else 0.0  # the alpha clamp has zero gradient where active
+        w = w if ok else 0.0
+        tb[L_ACC + li] += dpow
+        tb[L_ACC + np.uint64(NLANE) + li] += dpow * dy
+        tb[L_ACC + np.uint64(2 * NLANE) + li] += dpow * dy2
+        tb[L_ACC + np.uint64(3 * NLANE) + li] += w * g0
+        tb[L_ACC + np.uint64(4 * NLANE) + li] += w * g1
+        tb[L_ACC + np.uint64(5 * NLANE) + li] += w * g2
+        tb[L_ACC + np.uint64(6 * NLANE) + li] += w * g3
+        if eight:
+            tb[L_ACC + np.uint64(7 * NLANE) + li] += w * g4
+            tb[L_ACC + np.uint64(8 * NLANE) + li] += w * g5
+            tb[L_ACC + np.uint64(9 * NLANE) + li] += w * g6
+            tb[L_ACC + np.uint64(10 * NLANE) + li] += w * g7
+
+
 @njit(cache=True, nogil=True, parallel=True, fastmath=FMA)
 def raster_forward(pk, pf, pidx, tile_start, order, bg, width, height, depth_min_alpha, color, depth_raw, extras, depth,
                    tfinal, last, work_bwd, nworkers):
@@ -723,6 +893,7 @@ def raster_forward(pk, pf, pidx, tile_start, order, bg, width, height, depth_min
     for t in range(ntiles):
         max_pairs = max(max_pairs, tile_start[t + 1] - tile_start[t])
     counter = np.zeros(1, np.int64)
+    lanes = C == 4 or C == 8
     for _w in prange(nworkers):
         T = np.empty(NP, np.float64)  # running transmittance; 0 once the pixel has stopped
         Tstop = np.empty(NP, np.float64)  # transmittance at the stop
@@ -731,6 +902,7 @@ def raster_forward(pk, pf, pidx, tile_start, order, bg, width, height, depth_min
         # work done up to and including each pair of the tile: the backward's cost ends at the last contributor,
         # read off after the tile (a per-pixel "contributed" flag in the pixel loops cost ~6% of the forward)
         work_at = np.empty(max_pairs, np.float64)
+        tb = np.zeros(LANE_BUF, np.float64)  # the lane path's tile state (T, Tstop, lst, acc live here instead)
         while True:
             jt = _fetch_add(counter, np.int64(1))
             if jt >= ntiles:
@@ -744,9 +916,16 @@ def raster_forward(pk, pf, pidx, tile_start, order, bg, width, height, depth_min
             y1 = min(y0 + TILE, height) - 1
             npix = (x1 - x0 + 1) * (y1 - y0 + 1)
             k0 = tile_start[tile]
-            T[:] = 1.0
-            acc[:] = 0.0
-            lst[:] = k0
+            if lanes:
+                for p in range(NP):
+                    tb[_lane(L_T, p)] = 1.0
+                    tb[_lane(L_L, p)] = k0
+                for p in range(C * PLANE):
+                    tb[_lane(L_C, p)] = 0.0
+            else:
+                T[:] = 1.0
+                acc[:] = 0.0
+                lst[:] = k0
             ndone = 0
             work = 0.0
             kend = tile_start[tile + 1]
@@ -762,6 +941,10 @@ def raster_forward(pk, pf, pidx, tile_start, order, bg, width, height, depth_min
                 else:
                     Grow, Erow, Fy = _pair_start(mx, my, ca, cb, cc, gx0, gy0)
                 f4, f5, f6, f7 = _load_extras4(pf, j)
+                kk = np.float64(k + 1)
+                ws, nw = _window(gx0, gx1, x0)
+                if lanes and not chord:
+                    _lanes_start(tb, x0, gx0, gx1, Grow, Erow, Fy, ea, eb)
                 for y in range(gy0, gy1 + 1):
                     if chord:
                         sx0, sx1, G, E = _row_span(mx, ca, cb, cc, qmax, my - y, gx0, gx1)
@@ -772,42 +955,21 @@ def raster_forward(pk, pf, pidx, tile_start, order, bg, width, height, depth_min
                         Erow *= eb
                     work += max(0, sx1 - sx0 + 1)
                     prow = (y - y0) * TILE - x0
-                    if C == 8:  # four extras (fewer are padded to four): the features in registers
-                        for x in range(sx0, sx1 + 1):
-                            g = G
-                            G *= E
-                            E *= ea
-                            p = np.uint64(prow + x)
-                            w = _blend(T, Tstop, p, o, g)
-                            if w < 0.0:
-                                ndone += 1
-                                continue
-                            q = p * uC
-                            acc[q] += f0 * w
-                            acc[q + np.uint64(1)] += f1 * w
-                            acc[q + np.uint64(2)] += f2 * w
-                            acc[q + np.uint64(3)] += f3 * w
-                            acc[q + np.uint64(4)] += f4 * w
-                            acc[q + np.uint64(5)] += f5 * w
-                            acc[q + np.uint64(6)] += f6 * w
-                            acc[q + np.uint64(7)] += f7 * w
-                            lst[p] = max(lst[p], (k + 1) * (w > 0.0))
-                    elif C == 4:  # no extras: a lean copy of the loop
-                        for x in range(sx0, sx1 + 1):
-                            g = G
-                            G *= E
-                            E *= ea
-                            p = np.uint64(prow + x)
-                            w = _blend(T, Tstop, p, o, g)
-                            if w < 0.0:
-                                ndone += 1
-                                continue
-                            q = p * uC
-                            acc[q] += f0 * w
-                            acc[q + np.uint64(1)] += f1 * w
-                            acc[q + np.uint64(2)] += f2 * w
-                            acc[q + np.uint64(3)] += f3 * w
-                            lst[p] = max(lst[p], (k + 1) * (w > 0.0))
+                    if lanes:
+                        if chord:
+                            _lanes_span(tb, x0, sx0, sx1, G, E, ea)
+                        pb = (y - y0) * TILE
+                        if nw == TILE and C == 8:
+                            ndone += _blend_lanes(tb, pb, 0, TILE, o, f0, f1, f2, f3, f4, f5, f6, f7, kk, True)
+                        elif nw == TILE:
+                            ndone += _blend_lanes(tb, pb, 0, TILE, o, f0, f1, f2, f3, 0.0, 0.0, 0.0, 0.0, kk, False)
+                        elif C == 8:
+                            ndone += _blend_lanes(tb, pb, ws, TILE // 2, o, f0, f1, f2, f3, f4, f5, f6, f7, kk, True)
+                        else:
+                            ndone += _blend_lanes(tb, pb, ws, TILE // 2, o, f0, f1, f2, f3, 0.0, 0.0, 0.0, 0.0, kk,
+                                                  False)
+                        if not chord:
+                            _lanes_next_row(tb, ws, nw, ec)
                     else:
                         for x in range(sx0, sx1 + 1):
                             g = G
@@ -829,6 +991,14 @@ def raster_forward(pk, pf, pidx, tile_start, order, bg, width, height, depth_min
                 work_at[k - k0] = work
                 if ndone == npix:
                     break
+            if lanes:
+                for p in range(NP):
+                    lst[p] = np.int64(tb[_lane(L_L, p)])
+                    T[p] = tb[_lane(L_T, p)]
+                    Tstop[p] = tb[_lane(L_S, p)]
+                for c in range(C):
+                    for p in range(NP):
+                        acc[p * C + c] = tb[_plane(c, p)]
             kl = k0
             for p in range(NP):
                 kl = max(kl, lst[p])
@@ -865,12 +1035,14 @@ def raster_backward(pk, pf, pidx, tile_start, order, bg, width, height, depth_mi
     ntiles = order.shape[0]
     NP = TILE * TILE
     counter = np.zeros(1, np.int64)
+    lanes = C == 4 or C == 8
     for _w in prange(nworkers):
         T = np.empty(NP, np.float64)
         Rr = np.empty(NP, np.float64)
         gp = np.zeros(NP * C, np.float64)  # pixel-major dL/dout of the tile
         lst = np.zeros(NP, np.int64)
         gf = np.empty(C, np.float64)
+        tb = np.zeros(LANE_BUF, np.float64)  # the lane path's tile state (T, Rr, lst, gp live here instead)
         while True:
             jt = _fetch_add(counter, np.int64(1))
             if jt >= ntiles:
@@ -908,6 +1080,17 @@ def raster_backward(pk, pf, pidx, tile_start, order, bg, width, height, depth_mi
                     Rr[p] = tf * (bgg - gal)
                     lst[p] = last[y, x]
                     kmax = max(kmax, last[y, x])
+            if lanes:  # pixels outside the image stay zero: no pair's lanes reach them
+                for p in range(PLANE * (3 + C)):
+                    tb[_lane(L_T, p)] = 0.0
+                for y in range(y0, y1 + 1):
+                    for x in range(x0, x1 + 1):
+                        p = (y - y0) * TILE + (x - x0)
+                        tb[_lane(L_T, p)] = T[p]
+                        tb[_lane(L_S, p)] = Rr[p]
+                        tb[_lane(L_L, p)] = lst[p]
+                        for c in range(C):
+                            tb[_plane(c, p)] = gp[p * C + c]
             pg[kmax:k1] = 0.0  # pairs behind every pixel's last contributor
             _prefetch_pair(pk, pf, pidx, kmax - 1, kmax)
             _prefetch_pair(pk, pf, pidx, kmax - 2, kmax)
@@ -936,6 +1119,12 @@ def raster_backward(pk, pf, pidx, tile_start, order, bg, width, height, depth_mi
                 for c in range(4, C):
                     gf[c] = 0.0
                 f4, f5, f6, f7 = _load_extras4(pf, j)
+                ws, nw = _window(gx0, gx1, x0)
+                if lanes:
+                    for i in range(NLANE * (3 + C)):
+                        tb[_lane(L_ACC, i)] = 0.0
+                    if not chord:
+                        _lanes_start(tb, x0, gx0, gx1, Grow, Erow, Fy, ea, eb)
                 gf4 = 0.0
                 gf5 = 0.0
                 gf6 = 0.0
@@ -953,60 +1142,22 @@ def raster_backward(pk, pf, pidx, tile_start, order, bg, width, height, depth_mi
                     s0 = 0.0
                     s1 = 0.0
                     s2 = 0.0
-                    if C == 8:  # four extras (fewer are padded to four): the features in registers
-                        for x in range(sx0, sx1 + 1):
-                            g = G
-                            G *= E
-                            E *= ea
-                            p = np.uint64(prow + x)
-                            if k >= lst[p]:
-                                continue
-                            ga = o * g
-                            w, ti, iom = _unblend(T, p, ga)
-                            if w < 0.0:
-                                continue
-                            q = p * uC
-                            g0 = gp[q]
-                            g1 = gp[q + np.uint64(1)]
-                            g2 = gp[q + np.uint64(2)]
-                            g3 = gp[q + np.uint64(3)]
-                            g4 = gp[q + np.uint64(4)]
-                            g5 = gp[q + np.uint64(5)]
-                            g6 = gp[q + np.uint64(6)]
-                            g7 = gp[q + np.uint64(7)]
-                            fg = f0 * g0 + f1 * g1 + f2 * g2 + f3 * g3 + f4 * g4 + f5 * g5 + f6 * g6 + f7 * g7
-                            gf0 += w * g0
-                            gf1 += w * g1
-                            gf2 += w * g2
-                            gf3 += w * g3
-                            gf4 += w * g4
-                            gf5 += w * g5
-                            gf6 += w * g6
-                            gf7 += w * g7
-                            s0, s1, s2 = _unblend_grad(T, Rr, p, fg, w, ti, iom, ga, mx - x, s0, s1, s2)
-                    elif C == 4:  # no extras: a lean copy of the loop (fewer live registers)
-                        for x in range(sx0, sx1 + 1):
-                            g = G
-                            G *= E
-                            E *= ea
-                            p = np.uint64(prow + x)
-                            if k >= lst[p]:
-                                continue
-                            ga = o * g
-                            w, ti, iom = _unblend(T, p, ga)
-                            if w < 0.0:
-                                continue
-                            q = p * uC
-                            g0 = gp[q]
-                            g1 = gp[q + np.uint64(1)]
-                            g2 = gp[q + np.uint64(2)]
-                            g3 = gp[q + np.uint64(3)]
-                            fg = f0 * g0 + f1 * g1 + f2 * g2 + f3 * g3
-                            gf0 += w * g0
-                            gf1 += w * g1
-                            gf2 += w * g2
-                            gf3 += w * g3
-                            s0, s1, s2 = _unblend_grad(T, Rr, p, fg, w, ti, iom, ga, mx - x, s0, s1, s2)
+                    if lanes:
+                        if chord:
+                            _lanes_span(tb, x0, sx0, sx1, G, E, ea)
+                        pb = (y - y0) * TILE
+                        kf = np.float64(k)
+                        if nw == TILE and C == 8:
+                            _unblend_lanes(tb, pb, 0, TILE, o, f0, f1, f2, f3, f4, f5, f6, f7, kf, dy, True)
+                        elif nw == TILE:
+                            _unblend_lanes(tb, pb, 0, TILE, o, f0, f1, f2, f3, 0.0, 0.0, 0.0, 0.0, kf, dy, False)
+                        elif C == 8:
+                            _unblend_lanes(tb, pb, ws, TILE // 2, o, f0, f1, f2, f3, f4, f5, f6, f7, kf, dy, True)
+                        else:
+                            _unblend_lanes(tb, pb, ws, TILE // 2, o, f0, f1, f2, f3, 0.0, 0.0, 0.0, 0.0, kf, dy, False)
+                        if not chord:
+                            _lanes_next_row(tb, ws, nw, ec)
+                        continue
                     else:
                         for x in range(sx0, sx1 + 1):
                             g = G
@@ -1040,6 +1191,27 @@ def raster_backward(pk, pf, pidx, tile_start, order, bg, width, height, depth_mi
                     sdt += s0 * dy
                     sdyt += s1 * dy
                     sdy2t += s0 * dy * dy
+                if lanes:  # the lanes' sums over y, summed over the box's x (dx = mx - x is the lane's)
+                    for x in range(gx0, gx1 + 1):
+                        i = x - x0
+                        dx = mx - x
+                        a0 = tb[_lane(L_ACC, i)]
+                        a1 = tb[_lane(L_ACC, NLANE + i)]
+                        s0t += a0
+                        s1t += a0 * dx
+                        s2t += a0 * dx * dx
+                        sdt += a1
+                        sdyt += a1 * dx
+                        sdy2t += tb[_lane(L_ACC, 2 * NLANE + i)]
+                        gf0 += tb[_lane(L_ACC, 3 * NLANE + i)]
+                        gf1 += tb[_lane(L_ACC, 4 * NLANE + i)]
+                        gf2 += tb[_lane(L_ACC, 5 * NLANE + i)]
+                        gf3 += tb[_lane(L_ACC, 6 * NLANE + i)]
+                        if C == 8:
+                            gf4 += tb[_lane(L_ACC, 7 * NLANE + i)]
+                            gf5 += tb[_lane(L_ACC, 8 * NLANE + i)]
+                            gf6 += tb[_lane(L_ACC, 9 * NLANE + i)]
+                            gf7 += tb[_lane(L_ACC, 10 * NLANE + i)]
                 # power = -0.5 (a dx^2 + c dy^2) - b dx dy: d/dmean_x = -(a dx + b dy), d/dmean_y = -(c dy + b dx)
                 gmx = -(ca * s1t + cb * sdt)
                 gmy = -(cc * sdt + cb * s1t)
