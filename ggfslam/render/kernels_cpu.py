@@ -877,6 +877,32 @@ def _unblend_lanes(tb, pb, ws, n, o, f0, f1, f2, f3, f4, f5, f6, f7, kf, dy, eig
             tb[L_ACC + np.uint64(10 * NLANE) + li] += w * g7
 
 
+@njit(cache=True, nogil=True, inline="always", fastmath=FMA)
+def _blend_row(tb, pb, ws, nw, C, o, f0, f1, f2, f3, f4, f5, f6, f7, kk):
+    """``_blend_lanes`` on the pair's window (nw = 16, or 8 at offset ws) with C = 4 or 8 channels, each case with
+    literal arguments; returns how many pixels stopped."""
+    if nw == TILE and C == 8:
+        return _blend_lanes(tb, pb, 0, TILE, o, f0, f1, f2, f3, f4, f5, f6, f7, kk, True)
+    if nw == TILE:
+        return _blend_lanes(tb, pb, 0, TILE, o, f0, f1, f2, f3, 0.0, 0.0, 0.0, 0.0, kk, False)
+    if C == 8:
+        return _blend_lanes(tb, pb, ws, TILE // 2, o, f0, f1, f2, f3, f4, f5, f6, f7, kk, True)
+    return _blend_lanes(tb, pb, ws, TILE // 2, o, f0, f1, f2, f3, 0.0, 0.0, 0.0, 0.0, kk, False)
+
+
+@njit(cache=True, nogil=True, inline="always", fastmath=FMA)
+def _unblend_row(tb, pb, ws, nw, C, o, f0, f1, f2, f3, f4, f5, f6, f7, kf, dy):
+    """``_unblend_lanes`` on the pair's window, dispatched as ``_blend_row``."""
+    if nw == TILE and C == 8:
+        _unblend_lanes(tb, pb, 0, TILE, o, f0, f1, f2, f3, f4, f5, f6, f7, kf, dy, True)
+    elif nw == TILE:
+        _unblend_lanes(tb, pb, 0, TILE, o, f0, f1, f2, f3, 0.0, 0.0, 0.0, 0.0, kf, dy, False)
+    elif C == 8:
+        _unblend_lanes(tb, pb, ws, TILE // 2, o, f0, f1, f2, f3, f4, f5, f6, f7, kf, dy, True)
+    else:
+        _unblend_lanes(tb, pb, ws, TILE // 2, o, f0, f1, f2, f3, 0.0, 0.0, 0.0, 0.0, kf, dy, False)
+
+
 @njit(cache=True, nogil=True, parallel=True, fastmath=FMA)
 def raster_forward(pk, pf, pidx, tile_start, order, bg, width, height, depth_min_alpha, color, depth_raw, extras, depth,
                    tfinal, last, work_bwd, nworkers):
@@ -959,16 +985,7 @@ def raster_forward(pk, pf, pidx, tile_start, order, bg, width, height, depth_min
                     if lanes:
                         if chord:
                             _lanes_span(tb, x0, sx0, sx1, G, E, ea)
-                        pb = (y - y0) * TILE
-                        if nw == TILE and C == 8:
-                            ndone += _blend_lanes(tb, pb, 0, TILE, o, f0, f1, f2, f3, f4, f5, f6, f7, kk, True)
-                        elif nw == TILE:
-                            ndone += _blend_lanes(tb, pb, 0, TILE, o, f0, f1, f2, f3, 0.0, 0.0, 0.0, 0.0, kk, False)
-                        elif C == 8:
-                            ndone += _blend_lanes(tb, pb, ws, TILE // 2, o, f0, f1, f2, f3, f4, f5, f6, f7, kk, True)
-                        else:
-                            ndone += _blend_lanes(tb, pb, ws, TILE // 2, o, f0, f1, f2, f3, 0.0, 0.0, 0.0, 0.0, kk,
-                                                  False)
+                        ndone += _blend_row(tb, (y - y0) * TILE, ws, nw, C, o, f0, f1, f2, f3, f4, f5, f6, f7, kk)
                         if not chord:
                             _lanes_next_row(tb, ws, nw, ec)
                     else:
@@ -1146,16 +1163,8 @@ def raster_backward(pk, pf, pidx, tile_start, order, bg, width, height, depth_mi
                     if lanes:
                         if chord:
                             _lanes_span(tb, x0, sx0, sx1, G, E, ea)
-                        pb = (y - y0) * TILE
-                        kf = np.float64(k)
-                        if nw == TILE and C == 8:
-                            _unblend_lanes(tb, pb, 0, TILE, o, f0, f1, f2, f3, f4, f5, f6, f7, kf, dy, True)
-                        elif nw == TILE:
-                            _unblend_lanes(tb, pb, 0, TILE, o, f0, f1, f2, f3, 0.0, 0.0, 0.0, 0.0, kf, dy, False)
-                        elif C == 8:
-                            _unblend_lanes(tb, pb, ws, TILE // 2, o, f0, f1, f2, f3, f4, f5, f6, f7, kf, dy, True)
-                        else:
-                            _unblend_lanes(tb, pb, ws, TILE // 2, o, f0, f1, f2, f3, 0.0, 0.0, 0.0, 0.0, kf, dy, False)
+                        _unblend_row(tb, (y - y0) * TILE, ws, nw, C, o, f0, f1, f2, f3, f4, f5, f6, f7, np.float64(k),
+                                     dy)
                         if not chord:
                             _lanes_next_row(tb, ws, nw, ec)
                         continue
