@@ -46,6 +46,16 @@ def _opaque_stack(n: int, seed: int) -> dict:
     return sc
 
 
+def _chunks(n: int, seed: int) -> dict:
+    """More Gaussians than one work item of the projection kernels (SOA_CHUNK = 256, last chunk partial), with
+    every kind of cull mixed in: behind the camera, under 1/255 opacity, off screen."""
+    sc = random_gaussians(n, seed=seed, spread=(1.2, 0.9, 0.8), scale_range=(0.01, 0.1), n_extras=3)
+    sc["means"][::7, 2] = -1.0
+    sc["opacities"][1::7] = 0.002
+    sc["means"][2::7, 0] += 30.0
+    return sc
+
+
 SCENES = {
     "random": (lambda: random_gaussians(160, seed=1, n_extras=2), (60.0, 58.0, 31.5, 23.5, 64, 48), 0),
     "odd_size": (lambda: random_gaussians(120, seed=2), (40.0, 41.0, 15.2, 16.7, 37, 29), 3),
@@ -53,6 +63,7 @@ SCENES = {
     "opaque_stack": (lambda: _opaque_stack(90, seed=4), (50.0, 50.0, 24.5, 18.5, 48, 40), 5),
     # one to four extras take the kernels' four-channel path (padded); five the general loop
     "five_extras": (lambda: random_gaussians(100, seed=6, n_extras=5), (60.0, 58.0, 31.5, 23.5, 64, 48), 1),
+    "chunks": (lambda: _chunks(700, seed=8), (60.0, 58.0, 31.5, 23.5, 64, 48), 2),
 }
 
 

@@ -176,7 +176,7 @@ class _RasterizeCPU(torch.autograd.Function):
         g_extras = np.zeros((n, Kp), np.float32)
         g_m2d = np.zeros((n, 2), np.float32)
         nv = vis.shape[0]
-        nchunks = max(1, (nv + 255) // 256)
+        nchunks = max(1, (nv + kc.SOA_CHUNK - 1) // kc.SOA_CHUNK)
         g_pose = np.zeros((nchunks, 12), np.float64)
         R = R_cw.detach().to(torch.float64).contiguous().numpy()
         t = t_cw.detach().to(torch.float64).contiguous().numpy()
