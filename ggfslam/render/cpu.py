@@ -168,13 +168,13 @@ class _RasterizeCPU(torch.autograd.Function):
         nworkers = max(1, numba.get_num_threads())
         kc.raster_backward(srec, sfeat, pidx, tile_start, kc.tile_order(work_bwd), bg, W, H,
                            float(settings.depth_min_alpha), gc, gz, ge, gd, ga, depth_raw, tfinal, last, pg, nworkers)
-        g_means = np.zeros((n, 3), np.float32)
-        g_quats = np.zeros((n, 4), np.float32)
-        g_scales = np.zeros((n, 3), np.float32)
-        g_opac = np.zeros(n, np.float32)
-        g_colors = np.zeros((n, 3), np.float32)
-        g_extras = np.zeros((n, Kp), np.float32)
-        g_m2d = np.zeros((n, 2), np.float32)
+        g_means = np.empty((n, 3), np.float32)  # project_backward writes every row
+        g_quats = np.empty((n, 4), np.float32)
+        g_scales = np.empty((n, 3), np.float32)
+        g_opac = np.empty(n, np.float32)
+        g_colors = np.empty((n, 3), np.float32)
+        g_extras = np.empty((n, Kp), np.float32)
+        g_m2d = np.empty((n, 2), np.float32)
         nv = vis.shape[0]
         nchunks = max(1, (nv + kc.SOA_CHUNK - 1) // kc.SOA_CHUNK)
         g_pose = np.zeros((nchunks, 12), np.float64)

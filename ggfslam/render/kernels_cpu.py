@@ -1307,8 +1307,10 @@ def project_backward(means, quats, scales, Rcw, tcw, fx, fy, cx, cy, width, heig
                      slot_pair, pg, g_means, g_quats, g_scales, g_opac, g_colors, g_extras, g_m2d, g_pose_chunks,
                      nworkers):
     """Sum each visible Gaussian's per-pair gradients (its rows of pg, listed in slot_pair), then apply the chain
-    rule to the inputs. Writes the rows ``vis`` of g_* (the caller zeroes the others); g_pose_chunks
-    [ceil(Nv / SOA_CHUNK), 12] receives partial sums of dL/dRcw (row-major, 9) and dL/dtcw (3), one row per chunk."""
+    rule to the inputs. Writes every row of g_* (the rows ``vis``, ascending, get the gradients, the others zeros:
+    the caller need not clear them, ~0.7 ms at 100k Gaussians); g_pose_chunks [ceil(Nv / SOA_CHUNK), 12] receives
+    partial sums of dL/dRcw (row-major, 9) and dL/dtcw (3), one row per chunk."""
+    n = g_means.shape[0]
     nv = vis.shape[0]
     D = pg.shape[1]
     K = g_extras.shape[1]
@@ -1330,7 +1332,7 @@ def project_backward(means, quats, scales, Rcw, tcw, fx, fy, cx, cy, width, heig
             ch = _fetch_add(counter, np.int64(1))
             if ch >= nchunks:
                 break
-            j0 = ch * SOA_CHUNK
+            j0 = min(nv, ch * SOA_CHUNK)
             j1 = min(nv, j0 + SOA_CHUNK)
             qend = pair_start[j1]  # end of the chunk's slots (pair_start has nv + 1 entries)
             for j in range(j0, j1):
@@ -1365,17 +1367,35 @@ def project_backward(means, quats, scales, Rcw, tcw, fx, fy, cx, cy, width, heig
                         eps2d)
             for q in range(12):
                 g_pose_chunks[ch, q] = 0.0
-            for j in range(j0, j1):
-                i = vis[j]
-                jj = j - j0
-                for f in range(3):
-                    g_means[i, f] = buf[_field(PB_IN + f, jj)]
-                for f in range(4):
-                    g_quats[i, f] = buf[_field(PB_IN + 3 + f, jj)]
-                for f in range(3):
-                    g_scales[i, f] = buf[_field(PB_IN + 7 + f, jj)]
-                for q in range(12):
-                    g_pose_chunks[ch, q] += buf[_field(PB_IN + 10 + q, jj)]
+            # the chunk's rows of the outputs: from past the previous chunk's last visible Gaussian to its own last
+            # (the first chunk from row 0, the last to the end)
+            lo = 0 if j0 == 0 else vis[j0 - 1] + 1
+            hi = n if ch == nchunks - 1 else (vis[j1 - 1] + 1 if j1 > 0 else 0)
+            j = j0
+            for i in range(lo, hi):
+                if j < j1 and vis[j] == i:
+                    jj = j - j0
+                    for f in range(3):
+                        g_means[i, f] = buf[_field(PB_IN + f, jj)]
+                    for f in range(4):
+                        g_quats[i, f] = buf[_field(PB_IN + 3 + f, jj)]
+                    for f in range(3):
+                        g_scales[i, f] = buf[_field(PB_IN + 7 + f, jj)]
+                    for q in range(12):
+                        g_pose_chunks[ch, q] += buf[_field(PB_IN + 10 + q, jj)]
+                    j += 1
+                else:
+                    for f in range(3):
+                        g_means[i, f] = 0.0
+                        g_scales[i, f] = 0.0
+                        g_colors[i, f] = 0.0
+                    for f in range(4):
+                        g_quats[i, f] = 0.0
+                    for c in range(K):
+                        g_extras[i, c] = 0.0
+                    g_opac[i] = 0.0
+                    g_m2d[i, 0] = 0.0
+                    g_m2d[i, 1] = 0.0
 
 
 @njit(cache=True, nogil=True, inline="always", fastmath=FMA)
