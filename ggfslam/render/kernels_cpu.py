@@ -260,6 +260,32 @@ def _field(f, jj):
     return np.uint64(f * SOA_CHUNK) + (np.uint64(jj) & SOA_MASK)
 
 
+@njit(cache=True, nogil=True, inline="always", fastmath=FMA)
+def _soa_camera_point(buf, f, jj, Rt, t0, t1, t2):
+    """Gaussian jj's mean from buffer fields f..f+2 (world) and in the camera: (pwx, pwy, pwz, x, y, z)."""
+    R00, R01, R02, R10, R11, R12, R20, R21, R22 = Rt
+    pwx = buf[_field(f, jj)]
+    pwy = buf[_field(f + 1, jj)]
+    pwz = buf[_field(f + 2, jj)]
+    x = R00 * pwx + R01 * pwy + R02 * pwz + t0
+    y = R10 * pwx + R11 * pwy + R12 * pwz + t1
+    z = R20 * pwx + R21 * pwy + R22 * pwz + t2
+    return pwx, pwy, pwz, x, y, z
+
+
+@njit(cache=True, nogil=True, inline="always", fastmath=FMA)
+def _soa_unit_quaternion(buf, f, jj):
+    """Gaussian jj's quaternion (w, x, y, z) from buffer fields f..f+3, normalised, with its norm as read and
+    clamped at 1e-12: (qw, qx, qy, qz, norm, clamped norm)."""
+    qw = buf[_field(f, jj)]
+    qx = buf[_field(f + 1, jj)]
+    qy = buf[_field(f + 2, jj)]
+    qz = buf[_field(f + 3, jj)]
+    qn_raw = np.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+    qn = max(qn_raw, 1e-12)
+    return qw / qn, qx / qn, qy / qn, qz / qn, qn_raw, qn
+
+
 @njit(cache=True, nogil=True, parallel=True, fastmath=FMA)
 def project_forward(means, quats, scales, opac, Rcw, tcw, fx, fy, cx, cy, width, height, near, far, eps2d,
                     rec, radii, valid, nworkers):
@@ -318,16 +344,10 @@ def _project_lanes(buf, n, Rt, t0, t1, t2, fx, fy, cx, cy, width, height, near, 
     """The projection of ``project_forward`` for the chunk's n Gaussians, branch-free: everything is computed for
     every Gaussian and the culls (depth outside [near, far], opacity < 1/255, off screen by a conservative bound,
     a degenerate 2D covariance, an empty pixel box) select zeros."""
-    R00, R01, R02, R10, R11, R12, R20, R21, R22 = Rt
     limx2 = max(limxp, limxn) ** 2
     limy2 = max(limyp, limyn) ** 2
     for jj in range(n):
-        pwx = buf[_field(0, jj)]
-        pwy = buf[_field(1, jj)]
-        pwz = buf[_field(2, jj)]
-        x = R00 * pwx + R01 * pwy + R02 * pwz + t0
-        y = R10 * pwx + R11 * pwy + R12 * pwz + t1
-        z = R20 * pwx + R21 * pwy + R22 * pwz + t2
+        x, y, z = _soa_camera_point(buf, 0, jj, Rt, t0, t1, t2)[3:]
         o = buf[_field(10, jj)]
         s0 = buf[_field(7, jj)]
         s1 = buf[_field(8, jj)]
@@ -344,15 +364,7 @@ def _project_lanes(buf, n, Rt, t0, t1, t2, fx, fy, cx, cy, width, height, near, 
         ok = (z >= near) & (z <= far) & (o >= ALPHA_MIN)
         ok &= (mx + bx >= 0.0) & (mx - bx <= width - 1.0) & (my + by >= 0.0) & (my - by <= height - 1.0)
         # 3D covariance from the unit quaternion (w, x, y, z) and the scales
-        qw = buf[_field(3, jj)]
-        qx = buf[_field(4, jj)]
-        qy = buf[_field(5, jj)]
-        qz = buf[_field(6, jj)]
-        qn = max(np.sqrt(qw * qw + qx * qx + qy * qy + qz * qz), 1e-12)
-        qw /= qn
-        qx /= qn
-        qy /= qn
-        qz /= qn
+        qw, qx, qy, qz = _soa_unit_quaternion(buf, 3, jj)[:4]
         S00, S01, S02, S11, S12, S22 = _covariance3d(qw, qx, qy, qz, s0, s1, s2)[18:]
         ca, cb, cc = _covariance2d(S00, S01, S02, S11, S12, S22, Rt, fx, fy, z, rx, ry, rz, limxp, limxn, limyp,
                                    limyn, eps2d)[18:]
@@ -1412,22 +1424,8 @@ def _chain_rule(buf, n, Rt, t0, t1, t2, fx, fy, limxp, limxn, limyp, limyn, eps2
         gC = buf[_field(4, jj)]
         gz = buf[_field(5, jj)]
         # ---- recompute the forward quantities ----
-        pwx = buf[_field(6, jj)]
-        pwy = buf[_field(7, jj)]
-        pwz = buf[_field(8, jj)]
-        x = R00 * pwx + R01 * pwy + R02 * pwz + t0
-        y = R10 * pwx + R11 * pwy + R12 * pwz + t1
-        z = R20 * pwx + R21 * pwy + R22 * pwz + t2
-        qw0 = buf[_field(9, jj)]
-        qx0 = buf[_field(10, jj)]
-        qy0 = buf[_field(11, jj)]
-        qz0 = buf[_field(12, jj)]
-        qn_raw = np.sqrt(qw0 * qw0 + qx0 * qx0 + qy0 * qy0 + qz0 * qz0)
-        qn = max(qn_raw, 1e-12)
-        qw = qw0 / qn
-        qx = qx0 / qn
-        qy = qy0 / qn
-        qz = qz0 / qn
+        pwx, pwy, pwz, x, y, z = _soa_camera_point(buf, 6, jj, Rt, t0, t1, t2)
+        qw, qx, qy, qz, qn_raw, qn = _soa_unit_quaternion(buf, 9, jj)
         s0 = buf[_field(13, jj)]
         s1 = buf[_field(14, jj)]
         s2 = buf[_field(15, jj)]
