@@ -260,6 +260,31 @@ def _field(f, jj):
     return np.uint64(f * SOA_CHUNK) + (np.uint64(jj) & SOA_MASK)
 
 
+@njit(cache=True, nogil=True)  # not inlined into the callers' IR: numba's parfor array analysis fails on it there
+def _view(Rcw, fx, fy, cx, cy, width, height):
+    """The world-to-camera rotation as a 9-tuple (row-major) and the limits of x/z, y/z beyond which the EWA
+    Jacobian is clamped (the image's extent plus 30% of the half field of view): (Rt, limxp, limxn, limyp, limyn)."""
+    tanx = 0.5 * width / fx
+    tany = 0.5 * height / fy
+    limxp = (width - cx) / fx + 0.3 * tanx
+    limxn = cx / fx + 0.3 * tanx
+    limyp = (height - cy) / fy + 0.3 * tany
+    limyn = cy / fy + 0.3 * tany
+    Rt = (Rcw[0, 0], Rcw[0, 1], Rcw[0, 2], Rcw[1, 0], Rcw[1, 1], Rcw[1, 2], Rcw[2, 0], Rcw[2, 1], Rcw[2, 2])
+    return Rt, limxp, limxn, limyp, limyn
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _soa_gather_shape(buf, f, jj, means, quats, scales, i):
+    """Gaussian i's mean, quaternion and scales into buffer fields f..f+9 of the chunk's Gaussian jj."""
+    for c in range(3):
+        buf[_field(f + c, jj)] = means[i, c]
+    for c in range(4):
+        buf[_field(f + 3 + c, jj)] = quats[i, c]
+    for c in range(3):
+        buf[_field(f + 7 + c, jj)] = scales[i, c]
+
+
 @njit(cache=True, nogil=True, inline="always", fastmath=FMA)
 def _soa_camera_point(buf, f, jj, Rt, t0, t1, t2):
     """Gaussian jj's mean from buffer fields f..f+2 (world) and in the camera: (pwx, pwy, pwz, x, y, z)."""
@@ -295,13 +320,7 @@ def project_forward(means, quats, scales, opac, Rcw, tcw, fx, fy, cx, cy, width,
     (0 where not finite); other fields of culled Gaussians are 0. Per chunk of SOA_CHUNK Gaussians: gather (with
     ln(255 o)), the projection in vector lanes (``_project_lanes``), then the records with their exponentials."""
     n = means.shape[0]
-    tanx = 0.5 * width / fx
-    tany = 0.5 * height / fy
-    limxp = (width - cx) / fx + 0.3 * tanx
-    limxn = cx / fx + 0.3 * tanx
-    limyp = (height - cy) / fy + 0.3 * tany
-    limyn = cy / fy + 0.3 * tany
-    Rt = (Rcw[0, 0], Rcw[0, 1], Rcw[0, 2], Rcw[1, 0], Rcw[1, 1], Rcw[1, 2], Rcw[2, 0], Rcw[2, 1], Rcw[2, 2])
+    Rt, limxp, limxn, limyp, limyn = _view(Rcw, fx, fy, cx, cy, width, height)
     nchunks = (n + SOA_CHUNK - 1) // SOA_CHUNK
     counter = np.zeros(1, np.int64)
     for _w in prange(nworkers):
@@ -314,12 +333,7 @@ def project_forward(means, quats, scales, opac, Rcw, tcw, fx, fy, cx, cy, width,
             i1 = min(n, i0 + SOA_CHUNK)
             for i in range(i0, i1):
                 jj = i - i0
-                for f in range(3):
-                    buf[_field(f, jj)] = means[i, f]
-                for f in range(4):
-                    buf[_field(3 + f, jj)] = quats[i, f]
-                for f in range(3):
-                    buf[_field(7 + f, jj)] = scales[i, f]
+                _soa_gather_shape(buf, 0, jj, means, quats, scales, i)
                 o = np.float64(opac[i])
                 buf[_field(10, jj)] = o
                 buf[_field(11, jj)] = np.log(255.0 * o)
@@ -1329,13 +1343,7 @@ def project_backward(means, quats, scales, Rcw, tcw, fx, fy, cx, cy, width, heig
     nchunks = g_pose_chunks.shape[0]
     if nchunks * SOA_CHUNK < nv:
         raise ValueError("project_backward: g_pose_chunks needs a row per SOA_CHUNK visible Gaussians")
-    tanx = 0.5 * width / fx
-    tany = 0.5 * height / fy
-    limxp = (width - cx) / fx + 0.3 * tanx
-    limxn = cx / fx + 0.3 * tanx
-    limyp = (height - cy) / fy + 0.3 * tany
-    limyn = cy / fy + 0.3 * tany
-    Rt = (Rcw[0, 0], Rcw[0, 1], Rcw[0, 2], Rcw[1, 0], Rcw[1, 1], Rcw[1, 2], Rcw[2, 0], Rcw[2, 1], Rcw[2, 2])
+    Rt, limxp, limxn, limyp, limyn = _view(Rcw, fx, fy, cx, cy, width, height)
     counter = np.zeros(1, np.int64)
     for _w in prange(nworkers):
         gs = np.empty(D, np.float64)
@@ -1369,12 +1377,7 @@ def project_backward(means, quats, scales, Rcw, tcw, fx, fy, cx, cy, width, heig
                 for f in range(5):
                     buf[_field(f, jj)] = gs[f]
                 buf[_field(5, jj)] = gs[9]
-                for f in range(3):
-                    buf[_field(6 + f, jj)] = means[i, f]
-                for f in range(4):
-                    buf[_field(9 + f, jj)] = quats[i, f]
-                for f in range(3):
-                    buf[_field(13 + f, jj)] = scales[i, f]
+                _soa_gather_shape(buf, 6, jj, means, quats, scales, i)
             _chain_rule(buf, np.uint64(j1 - j0), Rt, tcw[0], tcw[1], tcw[2], fx, fy, limxp, limxn, limyp, limyn,
                         eps2d)
             for q in range(12):
