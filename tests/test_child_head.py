@@ -77,6 +77,67 @@ def test_child_head_matches_the_torch_reference(surfels, decoder):
         torch.testing.assert_close(a, b, atol=1e-4, rtol=1e-4)
 
 
+@pytest.mark.parametrize("decoder", ["sh1", "scaffold"])
+def test_child_head_reads_the_decoded_rows_of_the_maps_arrays(decoder):
+    """A decode of some anchors (a mask): the fused path reads rows of the map's whole arrays and returns their
+    gradients whole, zero in the rows not decoded; the reference gathers copies of the rows first."""
+    m = _map(view_dependent=decoder == "scaffold", sh_degree=0 if decoder == "scaffold" else 1)
+    cam = torch.tensor([0.5, -1.0, -2.0])
+    mask = torch.rand(m.n_anchors, generator=torch.Generator().manual_seed(4)) > 0.6
+    fused, ref = m.decode(cam, mask), m.decode(cam, mask, reference=True)
+    assert torch.equal(fused.child_index, ref.child_index) and torch.equal(fused.anchor_index, ref.anchor_index)
+    assert set(fused.anchor_index.tolist()) <= set(torch.nonzero(mask)[:, 0].tolist())
+    outs = ("means", "quats", "scales", "opacities", "colors")
+    for name in outs:
+        torch.testing.assert_close(getattr(fused, name), getattr(ref, name), atol=2e-6, rtol=1e-5)
+    gen = torch.Generator().manual_seed(3)
+    weights = [torch.randn(getattr(ref, n).shape, generator=gen) for n in outs]
+    params = [m.features, m.log_scale, m.offsets, m.base_color, *m.decoder.parameters()]
+
+    def grads(g):
+        for p in params:
+            p.grad = None
+        sum((w * getattr(g, n)).sum() for w, n in zip(weights, outs)).backward()
+        return [p.grad.clone() for p in params]
+
+    g_fused, g_ref = grads(fused), grads(ref)
+    for a, b in zip(g_fused, g_ref):
+        torch.testing.assert_close(a, b, atol=1e-4, rtol=1e-4)
+    for a in g_fused[:4]:  # per-anchor gradients: nothing outside the decoded rows
+        assert torch.all(a[~mask] == 0) and a[mask].abs().sum() > 0
+
+
+def test_child_head_gradients_match_finite_differences_on_rows_of_larger_arrays():
+    """anchor_index picks rows of per-anchor arrays larger than the decoded set, in any order: gradients of the
+    whole arrays (zero in the other rows) against finite differences."""
+    from ggfslam.gaussians.child_head import child_head
+
+    g = torch.Generator().manual_seed(9)
+    A, M, k = 7, 4, 3
+    rows = torch.tensor([5, 1, 6, 3])
+    d = dict(dtype=torch.float64)
+    raw_o = (0.5 + torch.rand(M, k, generator=g, **d)) * torch.tensor([1.0, -1.0, 1.0], **d)
+    raw_c, raw_cov = 0.3 * torch.randn(M, k, 4, 3, generator=g, **d), torch.randn(M, k, 7, generator=g, **d)
+    raw_c[:, :, 0] += 1.0
+    raw_cov[..., 3] += 2.0
+    offsets, base = torch.randn(A, k, 3, generator=g, **d), torch.randn(A, k, 3, generator=g, **d)
+    log_scale = torch.full((A, 3), -2.0, **d) + 0.1 * torch.randn(A, 3, generator=g, **d)
+    anchors = torch.randn(A, 3, generator=g, **d)
+    n = torch.nn.functional.normalize(torch.randn(M, 3, generator=g, **d), dim=1)
+    spec = SurfelSpec(torch.tensor([True, False, True, False]), n, quat_z_to(n), anchors[rows] + 0.1,
+                      torch.full((M,), 0.06, **d), 1e-4, True)
+    cam = torch.tensor([3.0, -2.0, 4.0], **d)
+    out = child_head(raw_o, raw_c, raw_cov, anchors, log_scale, offsets, base, rows, spec, cam, sh_degree=1)
+    assert torch.equal(out[6], rows.repeat_interleave(k)[raw_o.flatten() > 0])  # each child's anchor id
+    ins = [t.requires_grad_() for t in (raw_o, raw_c, raw_cov, offsets, log_scale, base)]
+
+    def f(ro, rc, rv, off, ls, bc):
+        o = child_head(ro, rc, rv, anchors, ls, off, bc, rows, spec, cam, sh_degree=1)
+        return torch.cat([t.flatten() for t in o[:5]])
+
+    assert torch.autograd.gradcheck(f, ins, eps=1e-6, atol=1e-6)
+
+
 def test_unshaped_gives_the_decoders_own_shape_under_amr():
     m = _map()
     cam = torch.tensor([0.5, -1.0, -2.0])
@@ -178,3 +239,14 @@ def test_decoder_orientation_flattens_the_childs_own_z_axis():
         return torch.cat([t.flatten() for t in out[:5]])
 
     assert torch.autograd.gradcheck(f, ins, eps=1e-6, atol=1e-6)
+
+
+def test_decoding_no_anchor_gives_no_children():
+    """An all-false mask (a bake before any keyframe) and an empty map decode to zero children, and the backward
+    through them gives zero gradients (the child head once failed to reshape an empty colour output)."""
+    m = _map(n=20)
+    g = m.decode(torch.zeros(3), torch.zeros(m.n_anchors, dtype=torch.bool))
+    assert len(g) == 0 and g.means.shape == (0, 3) and g.anchor_index.shape == (0,)
+    (g.means.sum() + g.colors.sum() + g.opacities.sum()).backward()
+    assert m.features.grad is not None and torch.all(m.features.grad == 0) and torch.all(m.offsets.grad == 0)
+    assert len(AnchorMap(0.05, 10, 16, 16, False, 0, 1).decode(torch.zeros(3))) == 0

@@ -291,12 +291,12 @@ class AnchorMap(nn.Module):
         c = c.float()
         if c.dim() == 2:
             c = c[idx]
-        # index_select, not [idx]: its backward is an index_add, where indexing's is an accumulating index_put
-        # (several ms a mapping step at 100k children)
-        args = (self.anchors[idx], *(getattr(self, n).index_select(0, idx) for n in PER_ANCHOR_PARAMS), c, idx)
         if reference:
-            return self.decoder.reference(*args)
-        return self.decoder(*args, surfels=surfels(idx) if surfels is not None else None)
+            return self.decoder.reference(self.anchors[idx], *(getattr(self, n)[idx] for n in PER_ANCHOR_PARAMS), c,
+                                          idx)
+        # the map's whole arrays: the decoder reads rows idx itself (and writes their gradients in place)
+        return self.decoder(self.anchors, *(getattr(self, n) for n in PER_ANCHOR_PARAMS), c, idx,
+                            surfels=surfels(idx) if surfels is not None else None)
 
     def decode_dense(self, cam_center: torch.Tensor, index: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """Every child (none dropped) of anchors ``index`` [M] seen from ``cam_center`` [M, 3] (``ChildDecoder.dense``)."""

@@ -119,16 +119,17 @@ def _view_basis(deg, mx, my, mz, cam, Y):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _child_geometry(m, j, raw_cov, anchors, offsets, L0, L1, L2, pl, align, surface, normals, radius, eps, snap,
+def _child_geometry(m, a, j, raw_cov, anchors, offsets, L0, L1, L2, pl, align, surface, normals, radius, eps, snap,
                     orient):
-    """Mean, rotation and scales of child j of anchor m (after AMR when ``pl``), then the three scale sigmoids."""
+    """Mean, rotation and scales of child j of decoded anchor m (row a of the per-anchor arrays; after AMR when
+    ``pl``), then the three scale sigmoids."""
     sg0, sg1, sg2 = _sigmoid(raw_cov[m, j, 0]), _sigmoid(raw_cov[m, j, 1]), _sigmoid(raw_cov[m, j, 2])
     s0 = L0 * sg0
     s1 = L1 * sg1
     s2 = L2 * sg2
-    mx = anchors[m, 0] + offsets[m, j, 0] * L0
-    my = anchors[m, 1] + offsets[m, j, 1] * L1
-    mz = anchors[m, 2] + offsets[m, j, 2] * L2
+    mx = anchors[a, 0] + offsets[a, j, 0] * L0
+    my = anchors[a, 1] + offsets[a, j, 1] * L1
+    mz = anchors[a, 2] + offsets[a, j, 2] * L2
     qw, qx, qy, qz = raw_cov[m, j, 3], raw_cov[m, j, 4], raw_cov[m, j, 5], raw_cov[m, j, 6]
     if pl:
         if orient:
@@ -153,8 +154,11 @@ def _child_geometry(m, j, raw_cov, anchors, offsets, L0, L1, L2, pl, align, surf
 @njit(cache=True, nogil=True, parallel=True, fastmath=FMA)
 def head_forward(raw_o, raw_c, raw_cov, anchors, log_scale, offsets, base_color, anchor_index, planar, normals,
                  align, surface, radius, eps, snap, orient, cam, sh_deg, start, out_means, out_quats, out_scales,
-                 out_opac, out_col, out_child, out_local, keep, keep_o):
-    """Kept children of M anchors into the compact outputs (anchor m's go to rows start[m]...). For the backward,
+                 out_opac, out_col, out_child, out_anchor, out_local, keep, keep_o):
+    """Kept children of M decoded anchors into the compact outputs (anchor m's go to rows start[m]...). Anchor m
+    reads row anchor_index[m] of anchors, log_scale, offsets and base_color (the map's whole arrays: no gather
+    before the call, no scatter of their gradients after it); the raw MLP outputs and the surfel arrays are per
+    decoded anchor. For the backward,
     ``keep`` [G, 9] float64 holds each child's mean, scale sigmoids and colour sigmoids and ``keep_o`` [G] (raw_o's
     dtype) its opacity, exactly as computed here (exps and tanh: recomputing them there was about half of its
     time; each in the type the backward computed it in, so it sees the very values it used to recompute)."""
@@ -164,7 +168,8 @@ def head_forward(raw_o, raw_c, raw_cov, anchors, log_scale, offsets, base_color,
         Y = np.empty(16)
         for m in range(ch * CHUNK, min(m_total, (ch + 1) * CHUNK)):
             row = start[m]
-            L0, L1, L2 = np.exp(log_scale[m, 0]), np.exp(log_scale[m, 1]), np.exp(log_scale[m, 2])
+            a = anchor_index[m]
+            L0, L1, L2 = np.exp(log_scale[a, 0]), np.exp(log_scale[a, 1]), np.exp(log_scale[a, 2])
             pl = planar[m] != 0
             for j in range(k):
                 if not raw_o[m, j] > 0.0:
@@ -173,10 +178,11 @@ def head_forward(raw_o, raw_c, raw_cov, anchors, log_scale, offsets, base_color,
                 out_opac[row] = o
                 keep_o[row] = o
                 mx, my, mz, qw, qx, qy, qz, s0, s1, s2, sg0, sg1, sg2 = _child_geometry(
-                    m, j, raw_cov, anchors, offsets, L0, L1, L2, pl, align, surface, normals, radius, eps, snap, orient)
+                    m, a, j, raw_cov, anchors, offsets, L0, L1, L2, pl, align, surface, normals, radius, eps, snap,
+                    orient)
                 _view_basis(sh_deg, mx, my, mz, cam, Y)
                 for c in range(3):
-                    v = _sigmoid(raw_c[m, j, c] + base_color[m, j, c])
+                    v = _sigmoid(raw_c[m, j, c] + base_color[a, j, c])
                     keep[row, 6 + c] = v
                     for b in range(1, nb):
                         v += Y[b] * raw_c[m, j, 3 * b + c]
@@ -185,19 +191,22 @@ def head_forward(raw_o, raw_c, raw_cov, anchors, log_scale, offsets, base_color,
                 keep[row, 0], keep[row, 1], keep[row, 2] = mx, my, mz
                 out_quats[row, 0], out_quats[row, 1], out_quats[row, 2], out_quats[row, 3] = qw, qx, qy, qz
                 out_scales[row, 0], out_scales[row, 1], out_scales[row, 2] = s0, s1, s2
-                out_child[row] = anchor_index[m] * k + j
+                out_child[row] = a * k + j
+                out_anchor[row] = a
                 out_local[row] = m
                 keep[row, 3], keep[row, 4], keep[row, 5] = sg0, sg1, sg2
                 row += 1
 
 
 @njit(cache=True, nogil=True, parallel=True, fastmath=FMA)
-def head_backward(raw_o, raw_c, raw_cov, offsets, log_scale, planar, normals, align, radius, snap, orient, cam,
-                  sh_deg, start, keep, keep_o, g_means, g_quats, g_scales, g_opac, g_col, gr_o, gr_c, gr_cov,
-                  g_offsets, g_log_scale, g_base):
-    """Gradients of the raw MLP outputs, offsets, log scales and base colours from those of the kept children
-    (every element of the outputs is written: children that were not kept get zero, so the caller need not clear
-    them, which was ~2.5 ms of a step at 100k children). The SH colour's direction is differentiated too (through
+def head_backward(raw_o, raw_c, raw_cov, offsets, log_scale, anchor_index, planar, normals, align, radius, snap,
+                  orient, cam, sh_deg, start, keep, keep_o, g_means, g_quats, g_scales, g_opac, g_col, gr_o, gr_c,
+                  gr_cov, g_offsets, g_log_scale, g_base):
+    """Gradients of the raw MLP outputs (per decoded anchor) and of the offsets, log scales and base colours (rows
+    anchor_index[m] of the map's arrays, as ``head_forward`` read them) from those of the kept children. Every
+    element of the raw outputs' gradients and of the decoded anchors' rows is written (children that were not kept
+    get zero, so the caller need not clear the raw ones, which was ~2.5 ms of a step at 100k children); the rows of
+    anchors not decoded are left as they are (the caller passes zeros). The SH colour's direction is differentiated too (through
     the child's mean, as 3DGS does). The forward's means, opacities and sigmoids are read back from ``keep`` and
     ``keep_o`` (``head_forward``), not recomputed."""
     m_total, k = raw_o.shape
@@ -208,7 +217,8 @@ def head_backward(raw_o, raw_c, raw_cov, offsets, log_scale, planar, normals, al
         GY = np.zeros(16)
         for m in range(ch * CHUNK, min(m_total, (ch + 1) * CHUNK)):
             row = start[m]
-            L0, L1, L2 = np.exp(log_scale[m, 0]), np.exp(log_scale[m, 1]), np.exp(log_scale[m, 2])
+            a = anchor_index[m]
+            L0, L1, L2 = np.exp(log_scale[a, 0]), np.exp(log_scale[a, 1]), np.exp(log_scale[a, 2])
             pl = planar[m] != 0
             gl0 = gl1 = gl2 = 0.0
             for j in range(k):
@@ -219,8 +229,8 @@ def head_backward(raw_o, raw_c, raw_cov, offsets, log_scale, planar, normals, al
                     for c in range(7):
                         gr_cov[m, j, c] = 0.0
                     for c in range(3):
-                        g_offsets[m, j, c] = 0.0
-                        g_base[m, j, c] = 0.0
+                        g_offsets[a, j, c] = 0.0
+                        g_base[a, j, c] = 0.0
                     continue
                 for c in range(3 * nb, nrc):  # coefficients beyond the degree in use
                     gr_c[m, j, c] = 0.0
@@ -243,7 +253,7 @@ def head_backward(raw_o, raw_c, raw_cov, offsets, log_scale, planar, normals, al
                     for b in range(1, nb):
                         gr_c[m, j, 3 * b + c] = gc * Y[b]
                         GY[b] += gc * raw_c[m, j, 3 * b + c]
-                    g_base[m, j, c] = g
+                    g_base[a, j, c] = g
                 gs0, gs1, gs2 = g_scales[row, 0], g_scales[row, 1], g_scales[row, 2]
                 gm0, gm1, gm2 = g_means[row, 0], g_means[row, 1], g_means[row, 2]
                 if sh_deg > 0 and dist > 0.0:  # d = (mu - cam) / |mu - cam|: (I - d d^T) / |.| grad_d
@@ -281,14 +291,14 @@ def head_backward(raw_o, raw_c, raw_cov, offsets, log_scale, planar, normals, al
                 gr_cov[m, j, 1] = gs1 * L1 * sig1 * (1.0 - sig1)
                 gr_cov[m, j, 2] = gs2 * L2 * sig2 * (1.0 - sig2)
                 gr_cov[m, j, 3], gr_cov[m, j, 4], gr_cov[m, j, 5], gr_cov[m, j, 6] = gq0, gq1, gq2, gq3
-                g_offsets[m, j, 0] = gm0 * L0
-                g_offsets[m, j, 1] = gm1 * L1
-                g_offsets[m, j, 2] = gm2 * L2
-                gl0 += gs0 * L0 * sig0 + gm0 * offsets[m, j, 0] * L0
-                gl1 += gs1 * L1 * sig1 + gm1 * offsets[m, j, 1] * L1
-                gl2 += gs2 * L2 * sig2 + gm2 * offsets[m, j, 2] * L2
+                g_offsets[a, j, 0] = gm0 * L0
+                g_offsets[a, j, 1] = gm1 * L1
+                g_offsets[a, j, 2] = gm2 * L2
+                gl0 += gs0 * L0 * sig0 + gm0 * offsets[a, j, 0] * L0
+                gl1 += gs1 * L1 * sig1 + gm1 * offsets[a, j, 1] * L1
+                gl2 += gs2 * L2 * sig2 + gm2 * offsets[a, j, 2] * L2
                 row += 1
-            g_log_scale[m, 0], g_log_scale[m, 1], g_log_scale[m, 2] = gl0, gl1, gl2
+            g_log_scale[a, 0], g_log_scale[a, 1], g_log_scale[a, 2] = gl0, gl1, gl2
 
 
 def _np(t: torch.Tensor, dtype: torch.dtype = torch.float32) -> np.ndarray:
@@ -302,7 +312,7 @@ class _ChildHead(torch.autograd.Function):
         # float32 in the mapper; float64 works too (the gradient checks run the same kernels in double)
         dt = torch.float64 if raw_o.dtype == torch.float64 else torch.float32
         m, k = raw_o.shape
-        ro, rc, rv = _np(raw_o, dt), _np(raw_c, dt).reshape(m, k, -1), _np(raw_cov, dt)
+        ro, rc, rv = _np(raw_o, dt), _np(raw_c, dt).reshape(m, k, int(np.prod(raw_c.shape[2:]))), _np(raw_cov, dt)
         counts = (ro > 0).sum(axis=1)
         start = np.zeros(m, np.int64)
         if m:
@@ -311,22 +321,24 @@ class _ChildHead(torch.autograd.Function):
         f = ro.dtype
         means, quats, scales = np.empty((g, 3), f), np.empty((g, 4), f), np.empty((g, 3), f)
         opac, col, child = np.empty(g, f), np.empty((g, 3), f), np.empty(g, np.int64)
-        local = np.empty(g, np.int64)
+        parent, local = np.empty(g, np.int64), np.empty(g, np.int64)
         keep, keep_o = np.empty((g, 9), np.float64), np.empty(g, f)
         surf = _surfel_arrays(m, surfels, dt)
         ls, bc, off, an = _np(log_scale, dt), _np(base_color, dt), _np(offsets, dt), _np(anchors, dt)
+        rows = anchor_index.to(torch.int64).contiguous().numpy()
         cam = np.asarray(cam, np.float64)
-        head_forward(ro, rc, rv, an, ls, off, bc, anchor_index.numpy(), *surf, cam, sh_deg, start, means, quats,
-                     scales, opac, col, child, local, keep, keep_o)
-        ctx.np = (ro, rc, rv, off, ls, surf, cam, sh_deg, start, g, raw_c.shape, keep, keep_o)
+        head_forward(ro, rc, rv, an, ls, off, bc, rows, *surf, cam, sh_deg, start, means, quats, scales, opac, col,
+                     child, parent, local, keep, keep_o)
+        ctx.np = (ro, rc, rv, off, ls, rows, surf, cam, sh_deg, start, g, raw_c.shape, keep, keep_o)
         ctx.dt = dt
-        info["child"], info["local"] = torch.from_numpy(child), torch.from_numpy(local)
+        info["child"], info["anchor"], info["local"] = (torch.from_numpy(child), torch.from_numpy(parent),
+                                                        torch.from_numpy(local))
         return (torch.from_numpy(means), torch.from_numpy(quats), torch.from_numpy(scales), torch.from_numpy(opac),
                 torch.from_numpy(col))
 
     @staticmethod
     def backward(ctx, g_means, g_quats, g_scales, g_opac, g_col):
-        ro, rc, rv, off, ls, surf, cam, sh_deg, start, g, c_shape, keep, keep_o = ctx.np
+        ro, rc, rv, off, ls, rows, surf, cam, sh_deg, start, g, c_shape, keep, keep_o = ctx.np
         dt = ctx.dt
 
         def z(t, shape):
@@ -335,10 +347,11 @@ class _ChildHead(torch.autograd.Function):
         gm, gq, gs = z(g_means, (g, 3)), z(g_quats, (g, 4)), z(g_scales, (g, 3))
         go, gc = z(g_opac, (g,)), z(g_col, (g, 3))
         gr_o, gr_c, gr_cov = np.empty_like(ro), np.empty_like(rc), np.empty_like(rv)  # the kernel writes all
-        g_off, g_ls, g_bc = np.empty_like(off), np.empty_like(ls), np.empty((len(ro), ro.shape[1], 3), ro.dtype)
+        # the map's whole arrays: rows of anchors not decoded stay zero
+        g_off, g_ls, g_bc = np.zeros_like(off), np.zeros_like(ls), np.zeros((len(off), ro.shape[1], 3), ro.dtype)
         planar, normals, align, _, radius, _, snap, orient = surf
-        head_backward(ro, rc, rv, off, ls, planar, normals, align, radius, snap, orient, cam, sh_deg, start, keep,
-                      keep_o, gm, gq, gs, go, gc, gr_o, gr_c, gr_cov, g_off, g_ls, g_bc)
+        head_backward(ro, rc, rv, off, ls, rows, planar, normals, align, radius, snap, orient, cam, sh_deg, start,
+                      keep, keep_o, gm, gq, gs, go, gc, gr_o, gr_c, gr_cov, g_off, g_ls, g_bc)
         return (torch.from_numpy(gr_o), torch.from_numpy(gr_c).reshape(c_shape), torch.from_numpy(gr_cov),
                 torch.from_numpy(g_off), torch.from_numpy(g_ls), torch.from_numpy(g_bc), None, None, None, None, None,
                 None)
@@ -357,16 +370,18 @@ def _surfel_arrays(m: int, spec: SurfelSpec | None, dt: torch.dtype) -> tuple:
 def child_head(raw_o: torch.Tensor, raw_c: torch.Tensor, raw_cov: torch.Tensor, anchors: torch.Tensor,
                log_scale: torch.Tensor, offsets: torch.Tensor, base_color: torch.Tensor, anchor_index: torch.Tensor,
                surfels: SurfelSpec | None = None, cam_center=None, sh_degree: int = 0):
-    """The kept children of M anchors (see the module docstring): raw_o [M, k], raw_c [M, k, B, 3] or [M, k, 3 B]
-    (B = (sh_degree + 1)^2: the DC logit, then the SH coefficients), raw_cov [M, k, 7], anchors [M, 3],
-    log_scale [M, 3], offsets [M, k, 3], base_color [M, k, 3] (logits), anchor_index [M] (global ids), the camera
-    centre [3] (world; the SH colour's viewpoint, unused for degree 0). Returns (means [G, 3], quats [G, 4],
-    scales [G, 3], opacities [G], colours [G, 3], child_index [G] = anchor_index * k + slot, local [G] = the row m
-    of each child's anchor); differentiable in every float input but anchors."""
+    """The kept children of M decoded anchors (see the module docstring): raw_o [M, k], raw_c [M, k, B, 3] or
+    [M, k, 3 B] (B = (sh_degree + 1)^2: the DC logit, then the SH coefficients), raw_cov [M, k, 7]; the map's
+    per-anchor arrays anchors [A, 3], log_scale [A, 3], offsets [A, k, 3], base_color [A, k, 3] (logits), of which
+    decoded anchor m is row anchor_index[m] [M] (its global id; their gradients come back [A, ...], zero in the rows
+    not decoded); the camera centre [3] (world; the SH colour's viewpoint, unused for degree 0). Returns (means
+    [G, 3], quats [G, 4], scales [G, 3], opacities [G], colours [G, 3], child_index [G] = anchor id * k + slot,
+    anchor [G] = each child's anchor id, local [G] = its row m); differentiable in every float input but
+    anchors."""
     if not 0 <= sh_degree <= 3:
         raise ValueError(f"sh_degree must be 0-3, got {sh_degree}")
     info: dict = {}
     cam = np.zeros(3) if cam_center is None else np.asarray(torch.as_tensor(cam_center).detach().double().reshape(3))
     means, quats, scales, opac, col = _ChildHead.apply(raw_o, raw_c, raw_cov, offsets, log_scale, base_color,
                                                        anchors, anchor_index, surfels, cam, int(sh_degree), info)
-    return means, quats, scales, opac, col, info["child"], info["local"]
+    return means, quats, scales, opac, col, info["child"], info["anchor"], info["local"]

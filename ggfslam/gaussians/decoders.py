@@ -26,6 +26,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ggfslam.gaussians.child_head import SurfelSpec, child_head
+from ggfslam.gaussians.decoder_mlps import decoder_mlps
 
 
 @dataclass
@@ -63,6 +64,14 @@ class DecodedGaussians:
 
 def _mlp(n_in: int, hidden: int, n_out: int) -> nn.Sequential:
     return nn.Sequential(nn.Linear(n_in, hidden), nn.ReLU(), nn.Linear(hidden, n_out))
+
+
+def _view_inputs(anchors: torch.Tensor, cam_center: torch.Tensor) -> torch.Tensor:
+    """A view-dependent decoder's extra inputs [M, 4]: the unit ray from the camera centre ([3] or [M, 3]) to each
+    anchor [M, 3] and its length."""
+    ray = anchors - cam_center  # [M, 3]
+    dist = ray.norm(dim=1, keepdim=True).clamp_min(1e-6)  # [M, 1]
+    return torch.cat([ray / dist, dist], dim=1)
 
 
 def _without_view(mlp: nn.Sequential, features: torch.Tensor) -> torch.Tensor:
@@ -103,9 +112,7 @@ class ChildDecoder(nn.Module):
         view-dependent (Scaffold-GS) decoder."""
         m, k = anchors.shape[0], self.k
         if self.view_dependent:
-            ray = anchors - cam_center  # [M, 3]
-            dist = ray.norm(dim=1, keepdim=True).clamp_min(1e-6)  # [M, 1]
-            x = torch.cat([features, ray / dist, dist], dim=1)  # [M, F + 4]
+            x = torch.cat([features, _view_inputs(anchors, cam_center)], dim=1)  # [M, F + 4]
             return self.opacity(x), self.color(x).view(m, k, self.n_sh, 3), self.cov(x).view(m, k, 7)
         # the four view inputs are zeros: the first layers leave them out (the same sums without the cat and four
         # of each row's products; ~4% of the MLPs' forward + backward at 10k anchors)
@@ -147,17 +154,21 @@ class ChildDecoder(nn.Module):
     def forward(self, anchors: torch.Tensor, features: torch.Tensor, log_scale: torch.Tensor,
                 offsets: torch.Tensor, base_color: torch.Tensor, cam_center: torch.Tensor,
                 anchor_index: torch.Tensor, surfels: SurfelSpec | None = None) -> DecodedGaussians:
-        """Decode the children of M anchors: anchors [M, 3], features [M, F], log_scale [M, 3],
-        offsets [M, k, 3], base_color [M, k, 3] (logits), cam_center [3] (a view-dependent decoder also takes [M, 3],
-        one viewpoint per anchor), anchor_index [M]; ``surfels`` applies AMR to the children of planar anchors.
-        Children with opacity <= 0 are dropped. The MLPs run in torch, the rest in the compiled child head."""
-        raw_o, raw_c, raw_cov = self.raw(anchors, features, cam_center)
+        """Decode the children of the M anchors ``anchor_index`` [M] (distinct rows) of the map's arrays anchors
+        [A, 3], features [A, F], log_scale [A, 3], offsets [A, k, 3], base_color [A, k, 3] (logits), seen from
+        cam_center [3] (a view-dependent decoder also takes one viewpoint per decoded anchor, [M, 3]); ``surfels``
+        applies AMR to the children of planar anchors. Children with opacity <= 0 are dropped. The MLPs run as one
+        autograd node (decoder_mlps.py), the rest in the compiled child head; neither gathers the anchors' rows
+        into copies, so their gradients come back [A, ...] without a scatter."""
+        m, k = anchor_index.shape[0], self.k
+        view = _view_inputs(anchors.index_select(0, anchor_index), cam_center) if self.view_dependent else None
+        raw_o, raw_c, raw_cov = decoder_mlps((self.opacity, self.color, self.cov), features, anchor_index, view)
+        raw_c, raw_cov = raw_c.view(m, k, self.n_sh, 3), raw_cov.view(m, k, 7)
         cam = None if self.sh_degree == 0 else cam_center
-        means, quats, scales, opac, color, child, local = child_head(raw_o, raw_c, raw_cov, anchors, log_scale,
-                                                                     offsets, base_color, anchor_index, surfels,
-                                                                     cam, self.sh_degree)
-        return DecodedGaussians(means, quats, scales, opac, color, child // self.k, child,
-                                _unshaped=(raw_cov, log_scale, local, self.k))
+        means, quats, scales, opac, color, child, parent, local = child_head(
+            raw_o, raw_c, raw_cov, anchors, log_scale, offsets, base_color, anchor_index, surfels, cam, self.sh_degree)
+        return DecodedGaussians(means, quats, scales, opac, color, parent, child,
+                                _unshaped=(raw_cov, log_scale.index_select(0, anchor_index), local, self.k))
 
     def reference(self, anchors: torch.Tensor, features: torch.Tensor, log_scale: torch.Tensor,
                   offsets: torch.Tensor, base_color: torch.Tensor, cam_center: torch.Tensor,
