@@ -145,13 +145,13 @@ def test_a_keyframes_exposure_is_solved_not_learned(sequence, gauge):
     with torch.no_grad():
         m.vignette.copy_(torch.tensor([-0.3, 0.1]))
         out = m.render(gt[12])
-        vignetted = m._vignetted(out.color, m.intr)  # what the training step hands the fit
+        vignetted = m._vignetted(out.color, m.intr)  # what the camera records (the fit vignettes the render itself)
     a, b = torch.tensor([0.8, 1.1, 0.9]), torch.tensor([0.05, -0.02, 0.0])
     image = (vignetted * a + b).numpy()
-    assert m._fit_exposure(1, vignetted, out.alpha, image, recentre=False)
+    assert m._fit_exposure(1, out.color, out.alpha, image, m.intr, recentre=False)
     torch.testing.assert_close(m.exposure.detach()[m.exposure_row[1]], torch.cat([a.log(), b]), atol=1e-4, rtol=0)
-    assert not m._fit_exposure(1, vignetted, torch.zeros_like(out.alpha), image)
-    assert m._fit_exposure(0, vignetted, out.alpha, image) == (gauge == "mean")
+    assert not m._fit_exposure(1, out.color, torch.zeros_like(out.alpha), image, m.intr)
+    assert m._fit_exposure(0, out.color, out.alpha, image, m.intr) == (gauge == "mean")
 
 
 
@@ -228,6 +228,13 @@ def test_covered_moments_are_the_masked_sums():
         numba.set_num_threads(threads)
     with pytest.raises(ValueError, match=r"\(37, 53\)"):
         covered_moments(x, y[:, :50], alpha, 0.4)
+    # with the vignetting gain formed inside: the sums of the image vignetted in torch, to the bit
+    r2 = rng.random((37, 53), dtype=np.float32)
+    v = torch.tensor([-0.3, 0.07])
+    xt, r2t = torch.from_numpy(x), torch.from_numpy(r2)
+    vig = (xt * (1.0 + v[0] * r2t + v[1] * r2t * r2t)[..., None]).numpy()
+    assert np.array_equal(covered_moments(x, y, alpha, 0.4, r2, tuple(v.tolist()))[1],
+                          covered_moments(vig, y, alpha, 0.4)[1])
 
 
 def _two_keyframes(ds) -> tuple[Mapper, dict]:
@@ -365,6 +372,42 @@ def test_opacity_entropy_value_and_gradient():
     np.testing.assert_allclose(o.grad.numpy(), [np.log((1 - p) / p) / 4 for p in (0.5, 0.1, 0.9, 0.999)], rtol=1e-9,
                                atol=1e-12)
     assert torch.autograd.gradcheck(opacity_entropy, (o.detach().clone().requires_grad_(True),))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_pointwise_terms_match_their_torch_references(dtype):
+    """The compiled depth L1, opacity entropy and mean volume (pointwise_losses.py) against the plain-torch forms:
+    values and gradients, ties and clamped ends included; finite differences in float64."""
+    from ggfslam.mapping.losses import (depth_loss_reference, opacity_entropy_reference, scale_volume,
+                                        scale_volume_reference)
+
+    g = torch.Generator().manual_seed(0)
+    tol = dict(rtol=1e-5, atol=1e-7) if dtype == torch.float32 else dict(rtol=1e-12, atol=1e-14)
+    gt = (1.0 + torch.rand(37, 53, generator=g, dtype=dtype)) * (torch.rand(37, 53, generator=g) > 0.2)
+    pred = gt + 0.1 * torch.randn(37, 53, generator=g, dtype=dtype)
+    pred[3, :7] = gt[3, :7]  # ties: |.|'s gradient is 0 there
+    o = torch.rand(5000, generator=g, dtype=dtype)
+    o[:3] = torch.tensor([0.0, 1.0, 0.5], dtype=dtype)  # clamped ends, and the entropy's flat point
+    s = 0.01 + torch.rand(5000, 3, generator=g, dtype=dtype)
+    for fused, ref, x, extra in ((depth_loss, depth_loss_reference, pred, (gt,)),
+                                 (opacity_entropy, opacity_entropy_reference, o, ()),
+                                 (scale_volume, scale_volume_reference, s, ())):
+        a, b = x.clone().requires_grad_(), x.clone().requires_grad_()
+        va, vb = fused(a, *extra), ref(b, *extra)
+        assert va.dtype == dtype
+        torch.testing.assert_close(va, vb, **tol)
+        (3.0 * va).backward()
+        (3.0 * vb).backward()
+        torch.testing.assert_close(a.grad, b.grad, **tol)
+        if dtype == torch.float64:
+            small = x[:40].clone().requires_grad_() if x.dim() == 1 else None
+            args = (small,) if small is not None else (x.clone().requires_grad_(),)
+            if fused is depth_loss:  # away from the ties (|.| has a kink there)
+                args = ((gt + 0.1 * torch.randn(37, 53, generator=g, dtype=dtype)).requires_grad_(),)
+            if fused is opacity_entropy:  # inside the clamp
+                args = ((0.05 + 0.9 * torch.rand(40, generator=g, dtype=dtype)).requires_grad_(),)
+            assert torch.autograd.gradcheck(lambda t: fused(t, *extra), args)
+    assert float(depth_loss(torch.ones(3, 3), torch.zeros(3, 3))) == 0.0  # no valid pixel: 0, not NaN
 
 
 def test_keyframe_budget_follows_the_frames_between_keyframes(tmp_path, sequence):

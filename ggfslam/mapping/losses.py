@@ -5,6 +5,7 @@ import torch
 
 from ggfslam.eval.image import ssim
 from ggfslam.mapping.loss_kernels import SSIM_SIZE, photometric_loss_fused
+from ggfslam.mapping.pointwise_losses import depth_l1_fused, fused_ok, opacity_entropy_fused, scale_volume_fused
 
 
 def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lambda_ssim: float = 0.2) -> torch.Tensor:
@@ -25,7 +26,13 @@ def photometric_loss_reference(pred: torch.Tensor, gt: torch.Tensor, lambda_ssim
 
 
 def depth_loss(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
-    """Mean |pred - gt| (m) over pixels with valid sensor depth (gt > 0); depth maps [H, W]."""
+    """Mean |pred - gt| (m) over pixels with valid sensor depth (gt > 0); depth maps [H, W]. Compiled on the CPU
+    (pointwise_losses.py), ``depth_loss_reference`` elsewhere."""
+    return depth_l1_fused(pred, gt) if fused_ok(pred, gt) else depth_loss_reference(pred, gt)
+
+
+def depth_loss_reference(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """Plain-torch ``depth_loss``."""
     valid = (gt > 0).to(pred.dtype)
     # a masked sum, not boolean indexing: no nonzero() forward and no index_put backward per step
     return ((pred - gt).abs() * valid).sum() / valid.sum().clamp_min(1)
@@ -55,7 +62,25 @@ def depth_spread_loss(depth_raw: torch.Tensor, depth_sq: torch.Tensor, alpha: to
 
 
 def opacity_entropy(opacity: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
-    """Mean binary entropy -o ln o - (1 - o) ln(1 - o) of opacities [G] in (0, 1): smallest where each Gaussian is
-    either opaque or gone (o -> 0 sends its child below the decoder's mask)."""
+    """Mean binary entropy -o ln o - (1 - o) ln(1 - o) of opacities [G] in (0, 1) (clamped to [eps, 1 - eps]):
+    smallest where each Gaussian is either opaque or gone (o -> 0 sends its child below the decoder's mask).
+    Compiled on the CPU, ``opacity_entropy_reference`` elsewhere."""
+    return opacity_entropy_fused(opacity, eps) if fused_ok(opacity) else opacity_entropy_reference(opacity, eps)
+
+
+def opacity_entropy_reference(opacity: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
+    """Plain-torch ``opacity_entropy``."""
     o = opacity.clamp(eps, 1.0 - eps)
     return -(o * torch.log(o) + (1.0 - o) * torch.log1p(-o)).mean()
+
+
+def scale_volume(scales: torch.Tensor) -> torch.Tensor:
+    """Mean product of the three scales [G, 3] (the children's mean volume up to 4/3 pi). Compiled on the CPU,
+    ``scale_volume_reference`` elsewhere."""
+    return scale_volume_fused(scales) if fused_ok(scales) else scale_volume_reference(scales)
+
+
+def scale_volume_reference(scales: torch.Tensor) -> torch.Tensor:
+    """Plain-torch ``scale_volume`` (``prod(dim=1)``'s backward was 1.1 ms at 100k children, this form's 0.4)."""
+    s0, s1, s2 = scales.unbind(1)
+    return (s0 * s1 * s2).mean()

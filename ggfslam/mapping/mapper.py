@@ -44,7 +44,7 @@ from ggfslam.ggf import GeometricGaussianField, planarity_colors
 from ggfslam.mapping.keyframe_store import KeyframeStore, scaled_intrinsics
 from ggfslam.mapping.exposure_kernels import covered_moments
 from ggfslam.mapping.loss_kernels import normal_loss_from_depth
-from ggfslam.mapping.losses import depth_loss, depth_spread_loss, opacity_entropy, photometric_loss
+from ggfslam.mapping.losses import depth_loss, depth_spread_loss, opacity_entropy, photometric_loss, scale_volume
 from ggfslam.mapping.sensor_kernels import sensor_model
 from ggfslam.render.api import rasterize
 from ggfslam.render.plane_depth import PLANE_CHANNELS, pixel_rays, plane_channels, plane_depth
@@ -381,7 +381,7 @@ class Mapper:
             out, moments = self._rasterize(g, intr, T_wc, None if p2d is None else p2d.detach(), spread)
             if c.exposure_closed_form:
                 with torch.no_grad():
-                    self._fit_exposure(kf_id, self._vignetted(out.color.detach(), intr), out.alpha.detach(), rgb)
+                    self._fit_exposure(kf_id, out.color.detach(), out.alpha.detach(), rgb, intr)
             # _expose(_vignetted(.)) in one compiled pass (sensor_kernels.py)
             color = sensor_model(out.color, self._ray_r2(intr) if c.vignetting else None,
                                  self.vignette if c.vignetting else None, self._exposure_of(kf_id))
@@ -399,8 +399,7 @@ class Mapper:
                 l_spread = depth_spread_loss(moments[..., 0], moments[..., 1], out.alpha, gt_depth > 0)
                 loss = loss + c.lambda_depth_spread * l_spread
             if c.lambda_scale > 0:
-                s0, s1, s2 = g.scales.unbind(1)  # prod(dim=1)'s backward: 1.1 ms at 100k children, this 0.4
-                vol = (s0 * s1 * s2).mean() / self.map.voxel_size ** 3
+                vol = scale_volume(g.scales) / self.map.voxel_size ** 3
                 loss = loss + c.lambda_scale * vol
             if c.lambda_opacity_entropy > 0:
                 loss = loss + c.lambda_opacity_entropy * opacity_entropy(g.opacities)
@@ -503,10 +502,11 @@ class Mapper:
         return self.exposure[self.exposure_row[kf_id]]
 
     @torch.no_grad()
-    def _fit_exposure(self, kf_id: int, vignetted: torch.Tensor, alpha: torch.Tensor, rgb: np.ndarray,
+    def _fit_exposure(self, kf_id: int, color: torch.Tensor, alpha: torch.Tensor, rgb: np.ndarray, intr: Intrinsics,
                       min_alpha: float = 0.5, recentre: bool = True) -> bool:
-        """Set keyframe ``kf_id``'s exposure to the per-channel least-squares affine map from a render with the
-        camera's vignetting (``_vignetted``, [H, W, 3]; its alpha [H, W]) to its image rgb [H, W, 3], over the
+        """Set keyframe ``kf_id``'s exposure to the per-channel least-squares affine map from a render [H, W, 3] at
+        intrinsics intr, with the camera's vignetting (``_vignetted``, applied inside the compiled sums; its alpha
+        [H, W]) to its image rgb [H, W, 3], over the
         pixels the map covers (alpha > min_alpha), then (``exposure_gauge: mean``, with ``recentre``) shift all
         exposures to a mean of zero. False (nothing changed) where too few pixels are covered, and for the first
         keyframe with ``exposure_gauge: first``: were every exposure fitted freely, the map's colours could drift by
@@ -515,9 +515,12 @@ class Mapper:
         if not self.cfg.exposure or kf_id not in self.exposure_row or (
                 self.exposure_row[kf_id] == 0 and not mean_gauge):
             return False  # with the first keyframe as gauge its exposure stays the identity
-        x = vignetted.detach().float().contiguous().numpy()  # [H, W, 3]
+        x = color.detach().float().contiguous().numpy()  # [H, W, 3]
+        vig = self.cfg.vignetting
         n, sums = covered_moments(x, np.ascontiguousarray(rgb, np.float32), alpha.detach().float().contiguous().numpy(),
-                                  min_alpha)  # sums [4, 3]: of x, y, x y, x x per channel
+                                  min_alpha, self._ray_r2(intr).numpy() if vig else None,
+                                  tuple(self.vignette.detach().tolist()) if vig else (0.0, 0.0))
+        # sums [4, 3]: of x, y, x y, x x per channel
         if n < 100:
             return False
         xm, ym, sxy, sxx = torch.from_numpy(sums / n)  # [3] each
@@ -550,8 +553,7 @@ class Mapper:
                     continue
                 out, _ = self._rasterize(g, intr, T_wc, None)
                 # no recentring: the final exposures are each keyframe's best fit to the finished map
-                n += self._fit_exposure(kf, self._vignetted(out.color, intr), out.alpha, self.store.get(kf, 0).rgb,
-                                        recentre=False)
+                n += self._fit_exposure(kf, out.color, out.alpha, self.store.get(kf, 0).rgb, intr, recentre=False)
         return n
 
     # --- rendering -----------------------------------------------------------------------------------
