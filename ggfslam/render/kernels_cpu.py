@@ -13,8 +13,8 @@ Pipeline (one render)
 2. ``bin_tiles`` (every pass parallel over chunks of Gaussians or tile rows; serial only prefix sums): compaction,
    radix sort of the visible Gaussians by view depth (64-bit ``depth bits << 32 | index`` keys, digits counted
    per chunk), depth-ordered copies of their records and features (``srec``, ``sfeat``; a gather with software
-   prefetch), per-tile lists (16x16 tiles, depth order inside a
-   tile) that hold each pair's depth rank (``pidx``, 4 bytes a pair). The rasterizers read a pair's record
+   prefetch), per-tile lists (``TILE`` x ``TILE`` tiles, 32 x 32, depth order
+   inside a tile) that hold each pair's depth rank (``pidx``, 4 bytes a pair). The rasterizers read a pair's record
    through ``pidx`` and prefetch the records of the pairs two steps ahead: the depth-ordered records are
    small (Nv x 64 bytes) and the prefetch hides most cache misses, so this is faster overall than copying a
    64+16-byte record per pair (measured, 100k Gaussians, render + backward: ~8 % faster at 320x240 and
@@ -35,7 +35,7 @@ Pipeline (one render)
    runs three times per (Gaussian, tile) pair, or twice per row in "chord" mode for very elongated,
    diagonal ellipses whose box corners would underflow. Channels ``[r, g, b, z, extras...]``; the
    background goes to the colour channels only. With no extras or exactly four (the caller pads one to
-   three) a Gaussian's row in a tile is evaluated on 16 (or 8) pixels of the tile row at once, in vector
+   three) a Gaussian's row in a tile is evaluated on 32, 16 or 8 pixels of the tile row at once, in vector
    lanes (``_blend_lanes``; see the comment above it): per lane, exp(power) moves from row to row by its
    own factor. Any other count of extras takes a scalar pixel loop (``_blend``;
    backward ``_unblend``, ``_unblend_grad``) with the recurrence along each row.
@@ -74,7 +74,7 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 FMA = {"contract"}  # the only fast-math flag used: fused multiply-add (no reassociation, NaN/Inf semantics kept)
-TILE = 16  # tile side in pixels
+TILE = 32  # tile side in pixels (see the comment above NPIX for why 32, not 16)
 ALPHA_MIN = 1.0 / 255.0  # contributions below this alpha are skipped
 ALPHA_MAX = 0.99  # alpha clamp
 T_MIN = 1e-4  # a pixel stops before its transmittance would fall below this
@@ -794,8 +794,9 @@ def _unblend_grad(T, Rr, p, fg, w, ti, iom, ga, dx, s0, s1, s2):
 
 
 # Vector lanes (the C = 4 and C = 8 channel paths of both rasterizers): a Gaussian's row inside a tile is evaluated
-# on a window of lanes at once: the whole tile row (16 pixels), or 8 pixels where the Gaussian's box is at most 8
-# wide (the window starts at its first pixel, or at 8). Lanes outside the box carry exp(power) = 0, the loops are
+# on a window of lanes at once: the whole tile row (32 pixels), 16 where the Gaussian's box is at most 16 wide or 8
+# where it is at most 8 (the window starts at its first pixel, or as far right as it fits; only the window's lanes are
+# cleared for each pair). Lanes outside the box carry exp(power) = 0, the loops are
 # branch-free, and LLVM vectorises them. Lane i's exp(power) moves to the next row by a per-lane factor (power is
 # quadratic, so the factor is exp(power(x, y+1) - power(x, y)), itself geometric in x and multiplied by exp(-c) per
 # row), set up once per (Gaussian, tile) pair by the multiplicative recurrences along the box's first row. A worker's
@@ -804,11 +805,18 @@ def _unblend_grad(T, Rr, p, fg, w, ti, iom, ga, dx, s0, s1, s2):
 # planes disjoint and vectorises without runtime alias checks. Measured on captured renders of fr3/cabinet (large
 # Gaussians; old and new kernels alternating in one process): forward 68.6 -> 41.9 ms at 640x480, backward 81.6 ->
 # 54.9 ms; on the small Gaussians of bench_mapping.py's throughput scene at 320x240 9.2 -> 8.0 and 13.2 -> 10.9 ms.
+# Tiles of 32 instead of 16 pixels (2026-12-07): a Gaussian's box meets fewer tiles, so there are fewer (Gaussian,
+# tile) pairs, each with its set-up (record loads, three exponentials, the first row's recurrences, the backward's
+# per-pair sums); the third, 8-lane window keeps small Gaussians from paying for wider rows. Pairs of captured renders
+# 357k -> 146k (fr3/cabinet, 640x480), 141k -> 75k (the same at 320x240), 141k -> 108k (the throughput scene);
+# binning + forward + backward, two threads, kernels alternating in one process: 105.2 -> 99.0 ms, 32.7 -> 30.9 ms,
+# 25.5 -> 22.9 ms. With 32-pixel tiles and only the two wider windows the throughput scene was 2.5% slower (its
+# boxes are mostly at most 8 wide); with 16-pixel tiles and a 4-lane third window all were slower.
 NPIX = TILE * TILE
-ROW_MASK = np.uint64(NPIX - TILE)  # a row start inside the tile: 0, 16, ..., 240
-WIN_MASK = np.uint64(TILE - 1)  # an 8-lane window's offset: 0..8 (masked to 0..15)
-NLANE = TILE + TILE // 2  # lane arrays hold a window at offset <= 15
-PLANE = NPIX + TILE  # pixel planes hold a row start + window offset + lane <= 262
+ROW_MASK = np.uint64(NPIX - TILE)  # a row start inside the tile: 0, 32, ..., 992
+WIN_MASK = np.uint64(TILE - 1)  # a window's offset: 0 (32 lanes), 0..16 (16), 0..24 (8); masked to 0..31
+NLANE = TILE + TILE // 2  # lane arrays hold a masked offset (<= 31) plus a narrower window's lanes (<= 15)
+PLANE = NPIX + TILE  # pixel planes hold a row start + masked window offset + lane <= 1038
 L_G = np.uint64(0)  # [NLANE] the row's exp(power) per lane
 L_F = np.uint64(NLANE)  # [NLANE] per lane, the factor to the next row's exp(power)
 L_T = np.uint64(2 * NLANE)  # [PLANE] transmittance
@@ -834,16 +842,18 @@ def _plane(c, p):
 @njit(cache=True, nogil=True, inline="always")
 def _window(gx0, gx1, x0):
     """(offset, width) of the lane window that covers the box columns [gx0, gx1] of the tile starting at x0."""
+    if gx1 - gx0 < TILE // 4:
+        return min(gx0 - x0, TILE - TILE // 4), TILE // 4
     if gx1 - gx0 < TILE // 2:
         return min(gx0 - x0, TILE // 2), TILE // 2
     return 0, TILE
 
 
 @njit(cache=True, nogil=True, inline="always", fastmath=FMA)
-def _lanes_start(tb, x0, gx0, gx1, G, E, F, ea, eb):
+def _lanes_start(tb, x0, gx0, gx1, ws, nw, G, E, F, ea, eb):
     """Lanes of the pair's first row: exp(power) G at pixel gx0 times the x-step factor E (itself times ea per
     pixel), and the row-step factor F at gx0 (times eb per pixel); zero outside [gx0, gx1]."""
-    for i in range(TILE):
+    for i in range(ws, ws + nw):
         tb[_lane(L_G, i)] = 0.0
         tb[_lane(L_F, i)] = 0.0
     for x in range(gx0, gx1 + 1):
@@ -855,9 +865,9 @@ def _lanes_start(tb, x0, gx0, gx1, G, E, F, ea, eb):
 
 
 @njit(cache=True, nogil=True, inline="always", fastmath=FMA)
-def _lanes_span(tb, x0, sx0, sx1, G, E, ea):
+def _lanes_span(tb, x0, sx0, sx1, ws, nw, G, E, ea):
     """Chord mode: lanes of one row from its span's recurrence (G at sx0, step E times ea); zero elsewhere."""
-    for i in range(TILE):
+    for i in range(ws, ws + nw):
         tb[_lane(L_G, i)] = 0.0
     for x in range(sx0, sx1 + 1):
         tb[_lane(L_G, x - x0)] = G
@@ -877,8 +887,8 @@ def _lanes_next_row(tb, ws, n, ec):
 
 @njit(cache=True, nogil=True, inline="always", fastmath=FMA)
 def _blend_lanes(tb, pb, ws, n, o, f0, f1, f2, f3, f4, f5, f6, f7, kk, eight):
-    """``_blend`` on the window of n lanes (16, or 8 at offset ws) of the tile row starting at pixel pb, adding four
-    (eight) features times the weights into the channel planes; returns how many pixels stopped. Call it with
+    """``_blend`` on the window of n lanes (32, or 16 or 8 at offset ws) of the tile row starting at pixel pb, adding
+    four (eight) features times the weights into the channel planes; returns how many pixels stopped. Call it with
     literal n and eight (it is inlined: they become constants, so the loop is vectorised)."""
     upb = np.uint64(pb) & ROW_MASK
     uws = np.uint64(ws) & WIN_MASK
@@ -963,15 +973,19 @@ def _unblend_lanes(tb, pb, ws, n, o, f0, f1, f2, f3, f4, f5, f6, f7, kf, dy, eig
 
 @njit(cache=True, nogil=True, inline="always", fastmath=FMA)
 def _blend_row(tb, pb, ws, nw, C, o, f0, f1, f2, f3, f4, f5, f6, f7, kk):
-    """``_blend_lanes`` on the pair's window (nw = 16, or 8 at offset ws) with C = 4 or 8 channels, each case with
+    """``_blend_lanes`` on the pair's window (nw = 32, or 16 or 8 at offset ws) with C = 4 or 8 channels, each case with
     literal arguments; returns how many pixels stopped."""
     if nw == TILE and C == 8:
         return _blend_lanes(tb, pb, 0, TILE, o, f0, f1, f2, f3, f4, f5, f6, f7, kk, True)
     if nw == TILE:
         return _blend_lanes(tb, pb, 0, TILE, o, f0, f1, f2, f3, 0.0, 0.0, 0.0, 0.0, kk, False)
-    if C == 8:
+    if nw == TILE // 2 and C == 8:
         return _blend_lanes(tb, pb, ws, TILE // 2, o, f0, f1, f2, f3, f4, f5, f6, f7, kk, True)
-    return _blend_lanes(tb, pb, ws, TILE // 2, o, f0, f1, f2, f3, 0.0, 0.0, 0.0, 0.0, kk, False)
+    if nw == TILE // 2:
+        return _blend_lanes(tb, pb, ws, TILE // 2, o, f0, f1, f2, f3, 0.0, 0.0, 0.0, 0.0, kk, False)
+    if C == 8:
+        return _blend_lanes(tb, pb, ws, TILE // 4, o, f0, f1, f2, f3, f4, f5, f6, f7, kk, True)
+    return _blend_lanes(tb, pb, ws, TILE // 4, o, f0, f1, f2, f3, 0.0, 0.0, 0.0, 0.0, kk, False)
 
 
 @njit(cache=True, nogil=True, inline="always", fastmath=FMA)
@@ -981,10 +995,14 @@ def _unblend_row(tb, pb, ws, nw, C, o, f0, f1, f2, f3, f4, f5, f6, f7, kf, dy):
         _unblend_lanes(tb, pb, 0, TILE, o, f0, f1, f2, f3, f4, f5, f6, f7, kf, dy, True)
     elif nw == TILE:
         _unblend_lanes(tb, pb, 0, TILE, o, f0, f1, f2, f3, 0.0, 0.0, 0.0, 0.0, kf, dy, False)
-    elif C == 8:
+    elif nw == TILE // 2 and C == 8:
         _unblend_lanes(tb, pb, ws, TILE // 2, o, f0, f1, f2, f3, f4, f5, f6, f7, kf, dy, True)
-    else:
+    elif nw == TILE // 2:
         _unblend_lanes(tb, pb, ws, TILE // 2, o, f0, f1, f2, f3, 0.0, 0.0, 0.0, 0.0, kf, dy, False)
+    elif C == 8:
+        _unblend_lanes(tb, pb, ws, TILE // 4, o, f0, f1, f2, f3, f4, f5, f6, f7, kf, dy, True)
+    else:
+        _unblend_lanes(tb, pb, ws, TILE // 4, o, f0, f1, f2, f3, 0.0, 0.0, 0.0, 0.0, kf, dy, False)
 
 
 @njit(cache=True, nogil=True, parallel=True, fastmath=FMA)
@@ -1055,7 +1073,7 @@ def raster_forward(pk, pf, pidx, tile_start, order, bg, width, height, depth_min
                 kk = np.float64(k + 1)
                 ws, nw = _window(gx0, gx1, x0)
                 if lanes and not chord:
-                    _lanes_start(tb, x0, gx0, gx1, Grow, Erow, Fy, ea, eb)
+                    _lanes_start(tb, x0, gx0, gx1, ws, nw, Grow, Erow, Fy, ea, eb)
                 for y in range(gy0, gy1 + 1):
                     if chord:
                         sx0, sx1, G, E = _row_span(mx, ca, cb, cc, qmax, my - y, gx0, gx1)
@@ -1068,7 +1086,7 @@ def raster_forward(pk, pf, pidx, tile_start, order, bg, width, height, depth_min
                     prow = (y - y0) * TILE - x0
                     if lanes:
                         if chord:
-                            _lanes_span(tb, x0, sx0, sx1, G, E, ea)
+                            _lanes_span(tb, x0, sx0, sx1, ws, nw, G, E, ea)
                         ndone += _blend_row(tb, (y - y0) * TILE, ws, nw, C, o, f0, f1, f2, f3, f4, f5, f6, f7, kk)
                         if not chord:
                             _lanes_next_row(tb, ws, nw, ec)
@@ -1223,10 +1241,11 @@ def raster_backward(pk, pf, pidx, tile_start, order, bg, width, height, depth_mi
                 f4, f5, f6, f7 = _load_extras4(pf, j)
                 ws, nw = _window(gx0, gx1, x0)
                 if lanes:
-                    for i in range(NLANE * (3 + C)):
-                        tb[_lane(L_ACC, i)] = 0.0
+                    for pl in range(3 + C):
+                        for i in range(ws, ws + nw):
+                            tb[_lane(L_ACC, pl * NLANE + i)] = 0.0
                     if not chord:
-                        _lanes_start(tb, x0, gx0, gx1, Grow, Erow, Fy, ea, eb)
+                        _lanes_start(tb, x0, gx0, gx1, ws, nw, Grow, Erow, Fy, ea, eb)
                 gf4 = 0.0
                 gf5 = 0.0
                 gf6 = 0.0
@@ -1246,7 +1265,7 @@ def raster_backward(pk, pf, pidx, tile_start, order, bg, width, height, depth_mi
                     s2 = 0.0
                     if lanes:
                         if chord:
-                            _lanes_span(tb, x0, sx0, sx1, G, E, ea)
+                            _lanes_span(tb, x0, sx0, sx1, ws, nw, G, E, ea)
                         _unblend_row(tb, (y - y0) * TILE, ws, nw, C, o, f0, f1, f2, f3, f4, f5, f6, f7, np.float64(k),
                                      dy)
                         if not chord:

@@ -6,8 +6,8 @@ when below 1/255; ``T_i = prod_{j<i} (1 - alpha_j)``; the pixel stops before the
 inclusion would bring T below 1e-4 (that and later Gaussians get weight 0); weights ``w_i = alpha_i T_i``;
 channels ``sum_i w_i f_i`` with ``f = [r, g, b, z, extras]``; colour gets ``(1 - sum w) * background``.
 
-The work is done per 16x16 tile on the Gaussians whose pixel box touches the tile (a pure speed
-measure: outside its box a Gaussian's alpha is below 1/255 anyway). Works in float32 or float64.
+The work is done per tile (``kernels_cpu.TILE`` pixels square) on the Gaussians whose pixel box touches the tile
+(a pure speed measure: outside its box a Gaussian's alpha is below 1/255 anyway). Works in float32 or float64.
 """
 from __future__ import annotations
 

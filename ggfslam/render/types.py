@@ -75,8 +75,8 @@ class Intrinsics:
 
 @dataclass(frozen=True)
 class RenderSettings:
-    """Options of a render. The alpha rules (clamp 0.99, skip < 1/255, stop at T < 1e-4) and the 16x16
-    tiles are fixed by the method and not settings."""
+    """Options of a render. The alpha rules (clamp 0.99, skip < 1/255, stop at T < 1e-4) are fixed by the method,
+    the tiles (32 x 32 pixels in the CPU kernels, gsplat's own on CUDA) by each backend; neither is a setting."""
 
     backend: str = "auto"  # auto | cpu | reference | gsplat
     near_plane: float = 0.01  # metres; Gaussians with view depth outside [near, far] are culled
