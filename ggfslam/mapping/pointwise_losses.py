@@ -82,38 +82,37 @@ def _np(t: torch.Tensor) -> np.ndarray:
     return t.detach().contiguous().numpy()
 
 
-class _DepthL1(torch.autograd.Function):
+class _WithGradient(torch.autograd.Function):
+    """A scalar ``value`` of x whose gradient ``scale * d`` (d [x.shape], numpy) was formed with it."""
+
     @staticmethod
-    def forward(ctx, pred, gt):
-        p, q = _np(pred).reshape(-1), _np(gt.to(pred.dtype)).reshape(-1)
-        sign = np.empty(p.shape[0], p.dtype)
-        part = np.empty((_chunks(p.shape[0]), 2))
-        _depth_l1_forward(p, q, sign, part)
-        total, count = part.sum(axis=0)
-        ctx.save = (sign.reshape(pred.shape), max(count, 1.0))
-        return torch.tensor(total / max(count, 1.0), dtype=pred.dtype)
+    def forward(ctx, x, value, d, scale):
+        ctx.save = (d, scale)
+        return torch.tensor(value, dtype=x.dtype)
 
     @staticmethod
     def backward(ctx, grad):
-        sign, count = ctx.save
-        return torch.from_numpy(sign) * (grad / count), None
+        d, scale = ctx.save
+        return torch.from_numpy(d) * (grad * scale), None, None, None
 
 
-class _OpacityEntropy(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, opacity, eps):
-        o = _np(opacity).reshape(-1)
-        dh = np.empty(o.shape[0], o.dtype)
-        part = np.empty(_chunks(o.shape[0]))
-        _entropy_forward(o, float(eps), dh, part)
-        n = max(o.shape[0], 1)
-        ctx.save = (dh.reshape(opacity.shape), n)
-        return torch.tensor(part.sum() / n, dtype=opacity.dtype)
+def _depth_l1(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    p, q = _np(pred).reshape(-1), _np(gt.to(pred.dtype)).reshape(-1)
+    sign = np.empty(p.shape[0], p.dtype)
+    part = np.empty((_chunks(p.shape[0]), 2))
+    _depth_l1_forward(p, q, sign, part)
+    total, count = part.sum(axis=0)
+    count = max(count, 1.0)
+    return _WithGradient.apply(pred, total / count, sign.reshape(pred.shape), 1.0 / count)
 
-    @staticmethod
-    def backward(ctx, grad):
-        dh, n = ctx.save
-        return torch.from_numpy(dh) * (grad / n), None
+
+def _opacity_entropy(opacity: torch.Tensor, eps: float) -> torch.Tensor:
+    o = _np(opacity).reshape(-1)
+    dh = np.empty(o.shape[0], o.dtype)
+    part = np.empty(_chunks(o.shape[0]))
+    _entropy_forward(o, float(eps), dh, part)
+    n = max(o.shape[0], 1)
+    return _WithGradient.apply(opacity, part.sum() / n, dh.reshape(opacity.shape), 1.0 / n)
 
 
 class _ScaleVolume(torch.autograd.Function):
@@ -143,12 +142,12 @@ def depth_l1_fused(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
     """Mean |pred - gt| over the pixels with gt > 0 (depth maps [H, W]); differentiable in pred."""
     if pred.shape != gt.shape:
         raise ValueError(f"depth_loss: prediction {tuple(pred.shape)} and sensor depth {tuple(gt.shape)} differ")
-    return _DepthL1.apply(pred, gt)
+    return _depth_l1(pred, gt)
 
 
 def opacity_entropy_fused(opacity: torch.Tensor, eps: float) -> torch.Tensor:
     """Mean binary entropy of clamp(opacity [G], eps, 1 - eps); differentiable in opacity."""
-    return _OpacityEntropy.apply(opacity, eps)
+    return _opacity_entropy(opacity, eps)
 
 
 def scale_volume_fused(scales: torch.Tensor) -> torch.Tensor:
