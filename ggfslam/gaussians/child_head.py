@@ -204,12 +204,12 @@ def head_backward(raw_o, raw_c, raw_cov, offsets, log_scale, anchor_index, plana
                   orient, cam, sh_deg, start, keep, keep_o, g_means, g_quats, g_scales, g_opac, g_col, gr_o, gr_c,
                   gr_cov, g_offsets, g_log_scale, g_base):
     """Gradients of the raw MLP outputs (per decoded anchor) and of the offsets, log scales and base colours (rows
-    anchor_index[m] of the map's arrays, as ``head_forward`` read them) from those of the kept children. Every
-    element of the raw outputs' gradients and of the decoded anchors' rows is written (children that were not kept
-    get zero, so the caller need not clear the raw ones, which was ~2.5 ms of a step at 100k children); the rows of
-    anchors not decoded are left as they are (the caller passes zeros). The SH colour's direction is differentiated too (through
-    the child's mean, as 3DGS does). The forward's means, opacities and sigmoids are read back from ``keep`` and
-    ``keep_o`` (``head_forward``), not recomputed."""
+    anchor_index[m] of the map's arrays, as ``head_forward`` read them; distinct rows, so no two threads write one)
+    from those of the kept children. Every element of the raw outputs' gradients and of the decoded anchors' rows is
+    written (children that were not kept get zero, so the caller need not clear the raw ones, which was ~2.5 ms of a
+    step at 100k children); the rows of anchors not decoded are left as they are (the caller passes zeros). The SH
+    colour's direction is differentiated too (through the child's mean, as 3DGS does). The forward's means,
+    opacities and sigmoids are read back from ``keep`` and ``keep_o`` (``head_forward``), not recomputed."""
     m_total, k = raw_o.shape
     nb = (sh_deg + 1) * (sh_deg + 1)
     nrc = gr_c.shape[2]
@@ -375,10 +375,10 @@ def child_head(raw_o: torch.Tensor, raw_c: torch.Tensor, raw_cov: torch.Tensor, 
     [M, k, 3 B] (B = (sh_degree + 1)^2: the DC logit, then the SH coefficients), raw_cov [M, k, 7]; the map's
     per-anchor arrays anchors [A, 3], log_scale [A, 3], offsets [A, k, 3], base_color [A, k, 3] (logits), of which
     decoded anchor m is row anchor_index[m] [M] (its global id; their gradients come back [A, ...], zero in the rows
-    not decoded); the camera centre [3] (world; the SH colour's viewpoint, unused for degree 0). Returns (means
-    [G, 3], quats [G, 4], scales [G, 3], opacities [G], colours [G, 3], child_index [G] = anchor id * k + slot,
-    anchor [G] = each child's anchor id, local [G] = its row m); differentiable in every float input but
-    anchors."""
+    not decoded; the rows must be distinct); the camera centre [3] (world; the SH colour's viewpoint, unused for
+    degree 0). Returns (means [G, 3], quats [G, 4], scales [G, 3], opacities [G], colours [G, 3], child_index [G] =
+    anchor id * k + slot, anchor [G] = each child's anchor id, local [G] = its row m); differentiable in every float
+    input but anchors."""
     if not 0 <= sh_degree <= 3:
         raise ValueError(f"sh_degree must be 0-3, got {sh_degree}")
     info: dict = {}

@@ -505,22 +505,22 @@ class Mapper:
     def _fit_exposure(self, kf_id: int, color: torch.Tensor, alpha: torch.Tensor, rgb: np.ndarray, intr: Intrinsics,
                       min_alpha: float = 0.5, recentre: bool = True) -> bool:
         """Set keyframe ``kf_id``'s exposure to the per-channel least-squares affine map from a render [H, W, 3] at
-        intrinsics intr, with the camera's vignetting (``_vignetted``, applied inside the compiled sums; its alpha
-        [H, W]) to its image rgb [H, W, 3], over the
-        pixels the map covers (alpha > min_alpha), then (``exposure_gauge: mean``, with ``recentre``) shift all
-        exposures to a mean of zero. False (nothing changed) where too few pixels are covered, and for the first
-        keyframe with ``exposure_gauge: first``: were every exposure fitted freely, the map's colours could drift by
-        any affine map that all exposures undo (a synthetic test drifted to gains 0.8 and offsets -0.2)."""
+        intrinsics intr (its alpha [H, W]), with the camera's vignetting (``_vignetted``, applied inside the compiled
+        sums), to its image rgb [H, W, 3], over the pixels the map covers (alpha > min_alpha), then
+        (``exposure_gauge: mean``, with ``recentre``) shift all exposures to a mean of zero. False (nothing changed)
+        where too few pixels are covered, and for the first keyframe with ``exposure_gauge: first``: were every
+        exposure fitted freely, the map's colours could drift by any affine map that all exposures undo (a synthetic
+        test drifted to gains 0.8 and offsets -0.2)."""
         mean_gauge = self.cfg.exposure_gauge == "mean"
         if not self.cfg.exposure or kf_id not in self.exposure_row or (
                 self.exposure_row[kf_id] == 0 and not mean_gauge):
             return False  # with the first keyframe as gauge its exposure stays the identity
         x = color.detach().float().contiguous().numpy()  # [H, W, 3]
         vig = self.cfg.vignetting
+        # sums [4, 3]: of x, y, x y, x x per channel
         n, sums = covered_moments(x, np.ascontiguousarray(rgb, np.float32), alpha.detach().float().contiguous().numpy(),
                                   min_alpha, self._ray_r2(intr).numpy() if vig else None,
                                   tuple(self.vignette.detach().tolist()) if vig else (0.0, 0.0))
-        # sums [4, 3]: of x, y, x y, x x per channel
         if n < 100:
             return False
         xm, ym, sxy, sxx = torch.from_numpy(sums / n)  # [3] each
