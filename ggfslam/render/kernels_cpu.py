@@ -841,7 +841,8 @@ def _plane(c, p):
 
 @njit(cache=True, nogil=True, inline="always")
 def _window(gx0, gx1, x0):
-    """(offset, width) of the lane window that covers the box columns [gx0, gx1] of the tile starting at x0."""
+    """(offset, width) of the lane window that covers the box columns [gx0, gx1] of the tile starting at x0: a
+    quarter of the tile row (8 lanes), half of it (16) or all of it (32), the narrowest that holds the box."""
     if gx1 - gx0 < TILE // 4:
         return min(gx0 - x0, TILE - TILE // 4), TILE // 4
     if gx1 - gx0 < TILE // 2:
@@ -852,7 +853,8 @@ def _window(gx0, gx1, x0):
 @njit(cache=True, nogil=True, inline="always", fastmath=FMA)
 def _lanes_start(tb, x0, gx0, gx1, ws, nw, G, E, F, ea, eb):
     """Lanes of the pair's first row: exp(power) G at pixel gx0 times the x-step factor E (itself times ea per
-    pixel), and the row-step factor F at gx0 (times eb per pixel); zero outside [gx0, gx1]."""
+    pixel), and the row-step factor F at gx0 (times eb per pixel); zero in the rest of the window [ws, ws + nw)
+    (lanes outside the window are not read)."""
     for i in range(ws, ws + nw):
         tb[_lane(L_G, i)] = 0.0
         tb[_lane(L_F, i)] = 0.0
@@ -866,7 +868,8 @@ def _lanes_start(tb, x0, gx0, gx1, ws, nw, G, E, F, ea, eb):
 
 @njit(cache=True, nogil=True, inline="always", fastmath=FMA)
 def _lanes_span(tb, x0, sx0, sx1, ws, nw, G, E, ea):
-    """Chord mode: lanes of one row from its span's recurrence (G at sx0, step E times ea); zero elsewhere."""
+    """Chord mode: lanes of one row from its span's recurrence (G at sx0, step E times ea); zero in the rest of the
+    window [ws, ws + nw)."""
     for i in range(ws, ws + nw):
         tb[_lane(L_G, i)] = 0.0
     for x in range(sx0, sx1 + 1):
