@@ -205,9 +205,10 @@ def head_backward(raw_o, raw_c, raw_cov, offsets, log_scale, anchor_index, plana
                   gr_cov, g_offsets, g_log_scale, g_base):
     """Gradients of the raw MLP outputs (per decoded anchor) and of the offsets, log scales and base colours (rows
     anchor_index[m] of the map's arrays, as ``head_forward`` read them; distinct rows, so no two threads write one)
-    from those of the kept children. Every element of the raw outputs' gradients and of the decoded anchors' rows is
-    written (children that were not kept get zero, so the caller need not clear the raw ones, which was ~2.5 ms of a
-    step at 100k children); the rows of anchors not decoded are left as they are (the caller passes zeros). The SH
+    from those of the kept children. Every element of the raw outputs' gradients is written (children that were not
+    kept get zero, so the caller need not clear them, which was ~2.5 ms of a step at 100k children); g_offsets,
+    g_log_scale and g_base must come in as zeros: only the kept children's entries and the decoded anchors' log
+    scales are written (the arrays cover the whole map, whose other rows stay zero anyway). The SH
     colour's direction is differentiated too (through the child's mean, as 3DGS does). The forward's means,
     opacities and sigmoids are read back from ``keep`` and ``keep_o`` (``head_forward``), not recomputed."""
     m_total, k = raw_o.shape
@@ -229,10 +230,7 @@ def head_backward(raw_o, raw_c, raw_cov, offsets, log_scale, anchor_index, plana
                         gr_c[m, j, c] = 0.0
                     for c in range(7):
                         gr_cov[m, j, c] = 0.0
-                    for c in range(3):
-                        g_offsets[a, j, c] = 0.0
-                        g_base[a, j, c] = 0.0
-                    continue
+                    continue  # its offsets' and base colour's gradients stay the caller's zeros
                 for c in range(3 * nb, nrc):  # coefficients beyond the degree in use
                     gr_c[m, j, c] = 0.0
                 o = keep_o[row]
