@@ -609,18 +609,18 @@ def bin_tiles(valid, rec, colors, extras, width, height, nworkers):
     npairs = row_pairs[nty]
     tile_start = np.empty(ntiles + 1, np.int64)
     tile_start[ntiles] = npairs
-    tile_count = np.empty(ntiles, np.int64)
     pidx = np.empty(npairs, np.int32)
     slot_pair = np.empty(npairs, np.int64)
     tile_cost = np.empty(ntiles, np.float64)
     counter[0] = 0
     for _w in prange(nworkers):
         tile_area = np.empty(ntx, np.int64)  # pixels of the pairs' boxes per tile of the row
+        cur = np.empty(ntx, np.int64)  # pairs per tile of the row, then each tile's next free position
         while True:
             r = _fetch_add(counter, np.int64(1))
             if r >= nty:
                 break
-            _fill_row(r, row_start, row_pairs, row_list, str_, srec, sbase, tile_start, tile_count, pidx, slot_pair,
+            _fill_row(r, row_start, row_pairs, row_list, str_, srec, sbase, tile_start, cur, pidx, slot_pair,
                       tile_cost, tile_area, ntx, width, height)
     return vis, tile_start, pidx, srec, sfeat, pair_start, slot_pair, tile_cost
 
@@ -640,15 +640,17 @@ def _pair_count(rec, i):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _fill_row(r, row_start, row_pairs, row_list, tr, crec, pair_start, tile_start, tile_count, pidx, slot_pair,
+def _fill_row(r, row_start, row_pairs, row_list, tr, crec, pair_start, tile_start, cur, pidx, slot_pair,
               tile_cost, tile_area, ntx, width, height):
     """Tile row r of ``bin_tiles``: its tiles' sizes and starts (the row's pairs begin at row_pairs[r]), then each
     Gaussian of the row appended to its tiles' pair lists. Here tr, crec and pair_start are in depth order and
-    row_list holds depth ranks, so reads go forward in memory."""
+    row_list holds depth ranks, so reads go forward in memory. cur and tile_area [ntx] are the worker's own: the
+    per-pair counts and cursors in an array shared by the workers put neighbouring rows' tiles in one cache line
+    (the pass took 3.3 ms on two threads against 1.9 ms on one)."""
     py0 = r * TILE
     py1 = min(py0 + TILE, height) - 1
     for t in range(ntx):
-        tile_count[r * ntx + t] = 0
+        cur[t] = 0
         tile_area[t] = 0
     qend = row_start[r + 1]
     for q in range(row_start[r], qend):
@@ -657,14 +659,14 @@ def _fill_row(r, row_start, row_pairs, row_list, tr, crec, pair_start, tile_star
         bx0 = np.int64(crec[j, R_X0])
         bx1 = np.int64(crec[j, R_X1])
         for t in range(tr[j, 0], tr[j, 1] + 1):
-            tile_count[r * ntx + t] += 1
+            cur[t] += 1
             px0 = t * TILE
             tile_area[t] += (min(bx1, min(px0 + TILE, width) - 1) - max(bx0, px0) + 1) * hgt
     pos = row_pairs[r]
     for t in range(ntx):
         tile_start[r * ntx + t] = pos
-        c = tile_count[r * ntx + t]
-        tile_count[r * ntx + t] = pos
+        c = cur[t]
+        cur[t] = pos
         pos += c
     for q in range(row_start[r], qend):
         if q + PREFETCH_AHEAD < qend:  # the slots are scattered (Gaussian-major order): fetch ahead
@@ -674,16 +676,15 @@ def _fill_row(r, row_start, row_pairs, row_list, tr, crec, pair_start, tile_star
         nx = tr[j, 1] - tx0 + 1
         base = pair_start[j] + (r - tr[j, 2]) * nx - tx0
         for t in range(tx0, tr[j, 1] + 1):
-            tile = r * ntx + t
-            pos = tile_count[tile]
-            tile_count[tile] = pos + 1
+            pos = cur[t]
+            cur[t] = pos + 1
             pidx[pos] = j
             slot_pair[base + t] = pos
     # cost: 0.8 per pixel of each pair's box in the tile plus 8 per pair (the pixels summed as integers in the counting
     # pass: a float sum per pair in the fill pass was ~1 ms of bin_tiles' 5 at 100k Gaussians, this ~0.4)
     for t in range(ntx):
         tile = r * ntx + t
-        tile_cost[tile] = 0.8 * tile_area[t] + 8.0 * (tile_count[tile] - tile_start[tile])
+        tile_cost[tile] = 0.8 * tile_area[t] + 8.0 * (cur[t] - tile_start[tile])
 
 
 @njit(cache=True, nogil=True)
