@@ -1243,7 +1243,11 @@ def raster_backward(pk, pf, pidx, tile_start, order, bg, width, height, depth_mi
                     gf[c] = 0.0
                 f4, f5, f6, f7 = _load_extras4(pf, j)
                 ws, nw = _window(gx0, gx1, x0)
-                if lanes and not chord:
+                if lanes:
+                    for pl in range(3 + C):
+                        for i in range(ws, ws + nw):
+                            tb[_lane(L_ACC, pl * NLANE + i)] = 0.0
+                    if not chord:
                         _lanes_start(tb, x0, gx0, gx1, ws, nw, Grow, Erow, Fy, ea, eb)
                 gf4 = 0.0
                 gf5 = 0.0
@@ -1301,8 +1305,7 @@ def raster_backward(pk, pf, pidx, tile_start, order, bg, width, height, depth_mi
                     sdt += s0 * dy
                     sdyt += s1 * dy
                     sdy2t += s0 * dy * dy
-                if lanes:  # the lanes' sums over y, summed over the box's x (dx = mx - x is the lane's), and
-                    # zeroed for the next pair: only the box's lanes can hold anything (elsewhere exp(power) is 0)
+                if lanes:  # the lanes' sums over y, summed over the box's x (dx = mx - x is the lane's)
                     for x in range(gx0, gx1 + 1):
                         i = x - x0
                         dx = mx - x
@@ -1318,15 +1321,11 @@ def raster_backward(pk, pf, pidx, tile_start, order, bg, width, height, depth_mi
                         gf1 += tb[_lane(L_ACC, 4 * NLANE + i)]
                         gf2 += tb[_lane(L_ACC, 5 * NLANE + i)]
                         gf3 += tb[_lane(L_ACC, 6 * NLANE + i)]
-                        for pl in range(7):
-                            tb[_lane(L_ACC, pl * NLANE + i)] = 0.0
                         if C == 8:
                             gf4 += tb[_lane(L_ACC, 7 * NLANE + i)]
                             gf5 += tb[_lane(L_ACC, 8 * NLANE + i)]
                             gf6 += tb[_lane(L_ACC, 9 * NLANE + i)]
                             gf7 += tb[_lane(L_ACC, 10 * NLANE + i)]
-                            for pl in range(7, 11):
-                                tb[_lane(L_ACC, pl * NLANE + i)] = 0.0
                 # power = -0.5 (a dx^2 + c dy^2) - b dx dy: d/dmean_x = -(a dx + b dy), d/dmean_y = -(c dy + b dx)
                 gmx = -(ca * s1t + cb * sdt)
                 gmy = -(cc * sdt + cb * s1t)
