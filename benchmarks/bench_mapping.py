@@ -89,11 +89,13 @@ def throughput(width: int, target: int, spacing: int, steps: int = 60, overrides
     from ggfslam.data.sources import open_dataset_from_config
     from ggfslam.mapping.mapper import Mapper
     from ggfslam.render.types import RenderSettings
+    from ggfslam.slam import setup_runtime
 
     height = width * 3 // 4
     cfg = config_from_dict(apply_overrides({"dataset": {"kind": "synthetic", "synthetic": {
         "n_frames": 980, "width": width, "height": height}}, "mapping": {"train_width": width}}, list(overrides or [])))
     ds = open_dataset_from_config(cfg.dataset)
+    setup_runtime(cfg)  # seeded as a run is (the decoders' initial weights): the same scene in every process
     poses: dict = {}
     m = Mapper(cfg.mapping, ds.camera, RenderSettings(backend="cpu"), lambda: dict(poses), tempfile.mkdtemp(),
                ggf=cfg.ggf)
