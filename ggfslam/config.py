@@ -233,6 +233,16 @@ class TrackingConfig(_Section):
     keyframe (0 = never). Every frame is scored, but the map trains on keyframes only: what the camera saw after the
     last keyframe was never mapped. On the demo's orbit (keyframe 108 of 120) those frames left the map empty where
     9% of the last frame's depth was (see docs/MEASUREMENTS.md, depth L1)."""
+    keyframe_still_translation: float = 0.005
+    """A keyframe due only to ``keyframe_max_frames`` (or ``final_keyframe_after``) is not made while the camera is
+    within this distance (m) and ``keyframe_still_rotation_deg`` of a keyframe the map already has: a camera at rest
+    (a sensor on a tripod, the still start of a live stream) or back at a view the map holds adds no view, only
+    memory, bundle-adjustment and mapping time (150 still frames of the 7-Scenes kitchen made 16 keyframes at one
+    pose before). Keyframes that tracking needs (too few points tracked, moved or turned too far) are not held back.
+    The frames at which a keyframe due by time was held back are counted in metrics.json
+    ``tracking.frames_held_still``. 0 = off."""
+    keyframe_still_rotation_deg: float = 0.5
+    """Angle (degrees) of ``keyframe_still_translation``'s test."""
     keyframe_tracked_ratio: float = 0.75
     """Insert a keyframe when fewer than this fraction of the reference keyframe's map points are tracked."""
     keyframe_translation: float = 0.15
@@ -279,6 +289,8 @@ class TrackingConfig(_Section):
     def _check(self) -> "TrackingConfig":
         if self.keyframe_max_frames < 1:
             raise ValueError("keyframe_max_frames must be >= 1")
+        if self.keyframe_still_translation < 0 or self.keyframe_still_rotation_deg < 0:
+            raise ValueError("keyframe_still_translation and keyframe_still_rotation_deg must be >= 0 (0 = off)")
         if self.final_keyframe_after < 0:
             raise ValueError("final_keyframe_after must be >= 0 (0 = never)")
         if self.dense_threads < 0:

@@ -62,6 +62,8 @@ def test_unknown_override_key_rejected():
     ({"dataset": {"kind": "synthetic", "synthetic": {"source": "mesh"}}}, "mesh_path"),
     ({"dataset": {"kind": "synthetic"}, "render": {"backend": "opengl"}}, "render.backend"),
     ({"dataset": {"kind": "synthetic"}, "ggf": {"snap": True, "surfel_orientation": "decoder"}}, "surfel_orientation"),
+    ({"dataset": {"kind": "synthetic"}, "tracking": {"keyframe_still_rotation_deg": -1}},
+     "keyframe_still_rotation_deg"),
     ({}, "dataset"),
 ])
 def test_invalid_values_name_the_field(data, needle):

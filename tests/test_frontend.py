@@ -255,6 +255,57 @@ def test_the_last_frame_becomes_a_keyframe_when_frames_followed_the_last_one():
         assert tracker.promote_last_frame() is None and len(tracker.map.keyframes) == n_kf
 
 
+def _resting(seq, moving: int, still: int, after: int = 0, noise: float = 0.004) -> tuple[list, np.ndarray]:
+    """The first ``moving`` frames of ``seq``, then ``still`` frames of a camera at rest at the last one's pose (its
+    image with fresh sensor-like noise each frame), then ``after`` more frames of the orbit; returns (frames, poses
+    [N, 4, 4])."""
+    src = list(seq)
+    rng = np.random.default_rng(0)
+    rest = src[moving - 1]
+    order = [*src[:moving], *([None] * still), *src[moving:moving + after]]
+    frames, poses = [], []
+    for i, f in enumerate(order):
+        if f is None:
+            rgb = np.clip(rest.rgb + rng.normal(0, noise, rest.rgb.shape), 0, 1).astype(rest.rgb.dtype)
+            f = Frame(i, 0.0, rgb, rest.depth, rest.T_wc)
+        frames.append(Frame(i, i / 30.0, f.rgb, f.depth, f.T_wc))
+        poses.append(f.T_wc)
+    return frames, np.stack(poses)
+
+
+@pytest.mark.parametrize("gate", [0.005, 0.0], ids=["held", "off"])
+def test_a_camera_at_rest_makes_no_keyframes_by_time(gate):
+    """``keyframe_still_translation``: while the camera rests at a keyframe's view, the time trigger makes no
+    keyframes (it made one every ``keyframe_max_frames`` frames at one pose); once it moves on they come again; at
+    the input's end ``promote_last_frame`` holds back a frame at rest and names the keyframe it rests at."""
+    seq = SyntheticSequence(n_frames=40, width=320, height=240, trajectory="orbit", seed=3)
+    frames, poses = _resting(seq, 15, 30, 25)  # frames 15-44 at frame 14's pose
+    # only the time trigger: no tracked-ratio, distance or angle keyframes on this slow orbit
+    tcfg = TrackingConfig(n_features=1000, keyframe_max_frames=10, keyframe_tracked_ratio=0.0,
+                          keyframe_translation=10.0, keyframe_rotation_deg=180.0, keyframe_still_translation=gate)
+    tracker, results = _track(frames, seq.camera, tcfg)
+    assert all(r.ok for r in results)
+    kf_frames = [i for i, r in enumerate(results) if r.keyframe]
+    stamps, est, _ = tracker.trajectory()
+    assert trajectory_metrics(stamps, est, stamps, poses)["ate_rmse_cm"] < 1.0
+    if gate == 0:
+        assert kf_frames == list(range(0, 70, 10)) and tracker.held_still == 0
+    else:
+        # 20 is the first due at rest, a view the map lacks (frame 10's keyframe is 4 cm back); none after it until
+        # the camera moves on at 45 and has left that view behind (the orbit's ~1 cm a frame)
+        assert kf_frames[:3] == [0, 10, 20] and not set(kf_frames) & set(range(21, 45)), kf_frames
+        assert 45 <= kf_frames[3] <= 46 and kf_frames[4] - kf_frames[3] == 10, kf_frames
+        assert tracker.held_still == 15 + kf_frames[3] - 45  # due at 30-44 (and 45 if still within the view)
+    # the input ends at rest: the last frame joins the map only without the gate
+    tracker, results = _track(frames[:40], seq.camera, tcfg.model_copy(update={"final_keyframe_after": 2}))
+    n_kf, rest_kf = len(tracker.map.keyframes), results[20].keyframe_id
+    kf = tracker.promote_last_frame()
+    if gate == 0:
+        assert kf is not None and kf.frame_index == 39 and tracker.rests_at is None
+    else:
+        assert kf is None and len(tracker.map.keyframes) == n_kf and tracker.rests_at == rest_kf
+
+
 def test_blank_frames_are_lost_then_relocalized():
     seq = SyntheticSequence(n_frames=50, width=320, height=240, trajectory="orbit", seed=4)
     frames = list(seq)

@@ -317,6 +317,39 @@ def test_the_map_covers_the_last_frame(tmp_path):
     assert rendering["depth_l1_cm"] < 0.5 * rendering_off["depth_l1_cm"], (rendering, rendering_off)
 
 
+def test_frames_at_rest_make_no_keyframes_but_keep_their_mapping_steps(tmp_path):
+    """A camera resting at the end of the input (``tracking.keyframe_still_translation``): its frames make no
+    keyframes, counted in metrics.json, and still earn their steps (``mapping.iterations_per_frame``), on the keyframe
+    they rest at: the run trains exactly as many steps as with a keyframe every ``keyframe_max_frames`` frames."""
+    from ggfslam.data.synthetic import SyntheticSequence
+    from ggfslam.data.types import Frame
+    from ggfslam.data.writer import write_tum_sequence
+
+    seq = SyntheticSequence(n_frames=15, width=320, height=240, trajectory="orbit", seed=3)
+    src = list(seq)
+    rng = np.random.default_rng(0)
+    frames = [Frame(i, i / 30.0, src[i].rgb if i < 15 else
+                    np.clip(src[14].rgb + rng.normal(0, 0.004, src[14].rgb.shape), 0, 1).astype(np.float32),
+                    src[min(i, 14)].depth, src[min(i, 14)].T_wc) for i in range(35)]  # at rest from frame 14
+    folder = write_tum_sequence(tmp_path / "resting", frames, seq.camera)
+
+    def run(gate: float) -> dict:
+        cfg = config_from_dict({
+            "name": "rest", "dataset": {"kind": "tum", "path": str(folder)},
+            "tracking": {"keyframe_max_frames": 10, "keyframe_still_translation": gate},
+            "mapping": {"iterations_per_keyframe": 1, "iterations_per_frame": 1.0, "final_iterations": 5,
+                        "mesh": False, "train_width": 160, "eval_width": 160}}, "t")
+        return slam.run(cfg, tmp_path / f"run{gate}", progress=False)
+
+    held, every = run(0.005), run(0.0)
+    assert every["tracking"]["frames_held_still"] == 0
+    # due by time at 30-34, all at frame 20's keyframe (the first due at rest); the last frame is held back too
+    assert held["tracking"]["frames_held_still"] == 5
+    assert held["mapping"]["keyframes"] == every["mapping"]["keyframes"] - 2  # 30 and 34 (the last frame)
+    assert held["mapping"]["iterations"] == every["mapping"]["iterations"] == 35 + 5
+    assert held["trajectory"]["ate_rmse_cm"] < 1.0
+
+
 def test_keyframe_store_is_bounded_and_reads_back_from_disk(tmp_path):
     cam = Camera(100.0, 100.0, 31.5, 23.5, 64, 48)
     intr = scaled_intrinsics(cam, 32)

@@ -64,9 +64,13 @@ class OrbTracker:
         self.dense = DenseOdometry(camera, cfg) if cfg.dense_fallback else None
         self.last_frame: Frame | None = None
         self.recent_sharpness: list[float] = []  # of the last 2 * keyframe_max_frames frames, this one last
+        self.held_still = 0  # frames whose keyframe due by time was not made: the camera was at a known view
+        self.rests_at: int | None = None  # the keyframe whose view the input's last frame had (promote_last_frame)
 
     def __setstate__(self, state: dict) -> None:  # checkpoints written before an attribute existed still resume
         state.setdefault("recent_sharpness", [])
+        state.setdefault("held_still", 0)
+        state.setdefault("rests_at", None)
         self.__dict__.update(state)
 
     # --- geometry helpers ---------------------------------------------------------------------------
@@ -250,9 +254,27 @@ class OrbTracker:
             return True
         return self.recent_sharpness[-1] >= r * float(np.median(self.recent_sharpness))
 
+    def known_view(self, T: np.ndarray) -> int | None:
+        """The nearest keyframe within ``keyframe_still_translation`` and ``keyframe_still_rotation_deg`` of
+        camera-to-world T [4, 4] (the camera is at a view the map has), else None (also for a checkpoint's settings
+        from before these)."""
+        d_max = getattr(self.cfg, "keyframe_still_translation", 0.0)
+        if d_max <= 0:
+            return None
+        with self.map.lock:
+            ids = np.array(list(self.map.keyframes), np.int64)  # [K]
+            poses = np.stack([kf.T_wc for kf in self.map.keyframes.values()])  # [K, 4, 4]
+        dist = np.linalg.norm(poses[:, :3, 3] - T[:3, 3], axis=1)  # [K]
+        # the relative rotation's angle from its trace: cos = (tr(R_kf^T R) - 1) / 2
+        cos = (np.einsum("kij,ij->k", poses[:, :3, :3], T[:3, :3]) - 1.0) / 2.0  # [K]
+        near = (dist <= d_max) & (cos >= np.cos(np.radians(self.cfg.keyframe_still_rotation_deg)))
+        return int(ids[near][np.argmin(dist[near])]) if near.any() else None
+
     def _need_keyframe(self, frame: Frame, T: np.ndarray, n_tracked: int) -> bool:
         if self._due_by_time(frame):
-            return True
+            if self.known_view(T) is None:
+                return True
+            self.held_still += 1
         ref = self.map.keyframes[self.ref_kf]
         with self.map.lock:
             ref_lm = ref.landmark_ids[ref.landmark_ids >= 0]
@@ -359,8 +381,10 @@ class OrbTracker:
 
     def promote_last_frame(self) -> KeyFrame | None:
         """At the end of the input: make the last frame a keyframe when it was tracked, is not one, and at least
-        ``final_keyframe_after`` frames followed the last keyframe (so the map learns what the camera saw since);
-        returns the new keyframe, else None."""
+        ``final_keyframe_after`` frames followed the last keyframe (so the map learns what the camera saw since), but
+        not when the camera came to rest at a keyframe's view (``rests_at`` then names that keyframe); returns the new
+        keyframe, else None."""
+        self.rests_at = None
         n = getattr(self.cfg, "final_keyframe_after", 0)  # a checkpoint's tracker from before the setting: as it was
         if n <= 0 or not self.records or self.last_frame is None:
             return None
@@ -368,6 +392,9 @@ class OrbTracker:
         if r.state != TrackingState.OK or r.index != self.last_frame.index or r.index - self.last_kf_frame < n:
             return None
         T = self.map.keyframes[r.ref_kf].T_wc @ r.T_ref_cur  # [4, 4] as the backend holds it now
+        self.rests_at = self.known_view(T)
+        if self.rests_at is not None:  # the camera came to rest at a keyframe's view: nothing new to map
+            return None
         kp = np.nonzero(self.last_lm >= 0)[0]
         with self.map.lock:
             kp = kp[self.map.alive[self.last_lm[kp]]]  # bundle adjustment may have culled points since
