@@ -466,14 +466,14 @@ def _track_sequence(config: Config, dataset: RGBDDataset, run_dir: Path, st: _Ru
 def _final_keyframe(st: _RunState) -> None:
     """The input's last frame as a keyframe (``tracking.final_keyframe_after``), handed to the mapper like any."""
     kf = st.tracker.promote_last_frame()
-    frame = st.tracker.last_frame
     if kf is None:
         rest = getattr(st.tracker, "rests_at", None)
         if rest is not None and st.worker is not None:
             # the frames since the last keyframe were held at a keyframe's view: they still earn their mapping steps
             with st.timer("mapping"):
-                st.worker.rest(rest, frame.index - st.tracker.last_kf_frame)
+                st.worker.rest(rest, st.tracker.last_frame.index - st.tracker.last_kf_frame)
         return
+    frame = st.tracker.last_frame
     for j in range(len(st.lines) - 1, 0, -1):  # its tracking.txt row now says keyframe
         f = st.lines[j].split(" ")
         if f[0] == str(frame.index):

@@ -66,11 +66,13 @@ class OrbTracker:
         self.recent_sharpness: list[float] = []  # of the last 2 * keyframe_max_frames frames, this one last
         self.held_still = 0  # frames whose keyframe due by time was not made: the camera was at a known view
         self.rests_at: int | None = None  # the keyframe whose view the input's last frame had (promote_last_frame)
+        self.rested_frame = -1  # the last frame promote_last_frame found at rest (a resumed run asks again)
 
     def __setstate__(self, state: dict) -> None:  # checkpoints written before an attribute existed still resume
         state.setdefault("recent_sharpness", [])
         state.setdefault("held_still", 0)
         state.setdefault("rests_at", None)
+        state.setdefault("rested_frame", -1)
         self.__dict__.update(state)
 
     # --- geometry helpers ---------------------------------------------------------------------------
@@ -382,18 +384,20 @@ class OrbTracker:
     def promote_last_frame(self) -> KeyFrame | None:
         """At the end of the input: make the last frame a keyframe when it was tracked, is not one, and at least
         ``final_keyframe_after`` frames followed the last keyframe (so the map learns what the camera saw since), but
-        not when the camera came to rest at a keyframe's view (``rests_at`` then names that keyframe); returns the new
-        keyframe, else None."""
+        not when the camera came to rest at a keyframe's view (``rests_at`` then names that keyframe, on the first call
+        for that frame only); returns the new keyframe, else None."""
         self.rests_at = None
         n = getattr(self.cfg, "final_keyframe_after", 0)  # a checkpoint's tracker from before the setting: as it was
         if n <= 0 or not self.records or self.last_frame is None:
             return None
         r = self.records[-1]
-        if r.state != TrackingState.OK or r.index != self.last_frame.index or r.index - self.last_kf_frame < n:
+        if (r.state != TrackingState.OK or r.index != self.last_frame.index or r.index - self.last_kf_frame < n
+                or r.index == self.rested_frame):
             return None
         T = self.map.keyframes[r.ref_kf].T_wc @ r.T_ref_cur  # [4, 4] as the backend holds it now
         self.rests_at = self.known_view(T)
         if self.rests_at is not None:  # the camera came to rest at a keyframe's view: nothing new to map
+            self.rested_frame = r.index  # answered once: its frames' steps are not handed out twice
             return None
         kp = np.nonzero(self.last_lm >= 0)[0]
         with self.map.lock:
