@@ -239,8 +239,8 @@ class TrackingConfig(_Section):
     (a sensor on a tripod, the still start of a live stream) or back at a view the map holds adds no view, only
     memory, bundle-adjustment and mapping time (150 still frames of the 7-Scenes kitchen made 16 keyframes at one
     pose before). Keyframes that tracking needs (too few points tracked, moved or turned too far) are not held back.
-    The frames at which a keyframe due by time was held back are counted in metrics.json
-    ``tracking.frames_held_still``. 0 = off."""
+    The frames held back still earn their mapping steps (``mapping.iterations_per_frame``), on the keyframe they rest
+    at; they are counted in metrics.json ``tracking.frames_held_still``. 0 = off."""
     keyframe_still_rotation_deg: float = 0.5
     """Angle (degrees) of ``keyframe_still_translation``'s test."""
     keyframe_tracked_ratio: float = 0.75
@@ -430,7 +430,9 @@ class MappingConfig(_Section):
     """Optimization steps after each new keyframe, at least (see ``iterations_per_frame``)."""
     iterations_per_frame: float = 3.0
     """Steps per input frame: a new keyframe gets this many per frame since the keyframe before it, when that is
-    more than ``iterations_per_keyframe`` (a budget that follows the sequence, not its keyframe count)."""
+    more than ``iterations_per_keyframe`` (a budget that follows the sequence, not its keyframe count); frames that
+    made no keyframe because the camera rested at a keyframe's view (``tracking.keyframe_still_translation``) get
+    theirs as they come, on that keyframe (sequential mode)."""
     window: int = 8
     """Keyframes trained after a new one: the new one (every other step), ``window - 1`` covisible ones (whose
     anchors fill most of its view) and keyframes drawn by their current photometric error, alternately."""

@@ -447,6 +447,9 @@ def _track_sequence(config: Config, dataset: RGBDDataset, run_dir: Path, st: _Ru
                 _map_keyframe(st, res.keyframe_id, frame)
                 if every and len(st.mapper.store) % every == 0:
                     st.checkpoint(run_dir, i + 1)
+            elif res.rests_at >= 0 and st.worker is not None:
+                with st.timer("mapping"):  # at rest: this frame's steps go to the view the camera looks at
+                    st.worker.rest(res.rests_at, frame.index)
             if (i + 1) % RSS_EVERY == 0 or i + 1 == st.n:
                 release_free_memory()  # the sample shows what the run holds, not glibc's cache of freed pages
                 st.rss.append((i + 1, round(current_rss_mb(), 1)))
@@ -471,7 +474,7 @@ def _final_keyframe(st: _RunState) -> None:
         if rest is not None and st.worker is not None:
             # the frames since the last keyframe were held at a keyframe's view: they still earn their mapping steps
             with st.timer("mapping"):
-                st.worker.rest(rest, st.tracker.last_frame.index - st.tracker.last_kf_frame)
+                st.worker.rest(rest, st.tracker.last_frame.index)
         return
     frame = st.tracker.last_frame
     for j in range(len(st.lines) - 1, 0, -1):  # its tracking.txt row now says keyframe

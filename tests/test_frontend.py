@@ -296,6 +296,8 @@ def test_a_camera_at_rest_makes_no_keyframes_by_time(gate):
         assert kf_frames[:3] == [0, 10, 20] and not set(kf_frames) & set(range(21, 45)), kf_frames
         assert 45 <= kf_frames[3] <= 46 and kf_frames[4] - kf_frames[3] == 10, kf_frames
         assert tracker.held_still == 15 + kf_frames[3] - 45  # due at 30-44 (and 45 if still within the view)
+        rest = [r.rests_at for r in results]  # each held frame names the keyframe it rests at
+        assert rest[30:45] == [results[20].keyframe_id] * 15 and set(rest[:30] + rest[46:]) == {-1}
     # the input ends at rest: the last frame joins the map only without the gate
     tracker, results = _track(frames[:40], seq.camera, tcfg.model_copy(update={"final_keyframe_after": 2}))
     n_kf, rest_kf = len(tracker.map.keyframes), results[20].keyframe_id

@@ -343,11 +343,30 @@ def test_frames_at_rest_make_no_keyframes_but_keep_their_mapping_steps(tmp_path)
 
     held, every = run(0.005), run(0.0)
     assert every["tracking"]["frames_held_still"] == 0
-    # due by time at 30-34, all at frame 20's keyframe (the first due at rest); the last frame is held back too
+    # due by time at 30-34, all at frame 20's keyframe (the first due at rest), whose steps they get as they come;
+    # the last frame is held back too
     assert held["tracking"]["frames_held_still"] == 5
     assert held["mapping"]["keyframes"] == every["mapping"]["keyframes"] - 2  # 30 and 34 (the last frame)
     assert held["mapping"]["iterations"] == every["mapping"]["iterations"] == 35 + 5
     assert held["trajectory"]["ate_rmse_cm"] < 1.0
+
+
+def test_frames_at_rest_are_paid_once_and_the_next_keyframe_gets_the_rest():
+    """``Mapper.rest_steps`` and ``keyframe_budget`` share the frames between a keyframe and the next: those at rest
+    are paid as they come (cumulative rounding, so 1.5 steps a frame stay 1.5 on average), the next keyframe gets
+    the others, and together they make what one keyframe after all of them would have had."""
+    from types import SimpleNamespace
+
+    frames = {0: 0, 1: 20}  # keyframe id -> frame index
+    store = SimpleNamespace(ids=lambda: sorted(frames), frame_index=lambda k: frames[k])
+    m = SimpleNamespace(cfg=MappingConfig(iterations_per_keyframe=1, iterations_per_frame=1.5), store=store,
+                        rest_paid_until=-1)
+    assert Mapper.keyframe_budget(m, 1) == 30  # nothing at rest: 20 frames
+    paid = [Mapper.rest_steps(m, f) for f in (30, 31, 32, 32)]  # 32 asked twice: paid once
+    assert paid == [15, 1, 2, 0] and m.rest_paid_until == 32
+    frames[2] = 40
+    assert Mapper.keyframe_budget(m, 2) == 12  # frames 33-40
+    assert sum(paid) + 12 == round(1.5 * 20)
 
 
 def test_keyframe_store_is_bounded_and_reads_back_from_disk(tmp_path):

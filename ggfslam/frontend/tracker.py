@@ -272,11 +272,23 @@ class OrbTracker:
         near = (dist <= d_max) & (cos >= np.cos(np.radians(self.cfg.keyframe_still_rotation_deg)))
         return int(ids[near][np.argmin(dist[near])]) if near.any() else None
 
-    def _need_keyframe(self, frame: Frame, T: np.ndarray, n_tracked: int) -> bool:
+    def _need_keyframe(self, frame: Frame, T: np.ndarray, n_tracked: int) -> tuple[bool, int]:
+        """(whether the frame becomes a keyframe, the keyframe whose view it rests at where a keyframe due only by
+        time was held back for that, else -1)."""
+        rest = None
         if self._due_by_time(frame):
-            if self.known_view(T) is None:
-                return True
-            self.held_still += 1
+            rest = self.known_view(T)
+            if rest is None:
+                return True, -1
+        if self._needed_by_tracking(T, n_tracked):
+            return True, -1
+        if rest is None:
+            return False, -1
+        self.held_still += 1
+        return False, rest
+
+    def _needed_by_tracking(self, T: np.ndarray, n_tracked: int) -> bool:
+        """Too few of the reference keyframe's points tracked, or moved or turned too far from it."""
         ref = self.map.keyframes[self.ref_kf]
         with self.map.lock:
             ref_lm = ref.landmark_ids[ref.landmark_ids >= 0]
@@ -346,7 +358,9 @@ class OrbTracker:
         self.state = state
         self.velocity = invert(self.last_T) @ T if state == TrackingState.OK else np.eye(4)
         weak = len(lm) < self.cfg.min_matches  # only a dense estimate placed this frame
-        is_kf = state == TrackingState.OK and (weak or self._need_keyframe(frame, T, len(lm)))
+        is_kf, rests_at = False, -1  # rests_at: a keyframe due by time held back at that keyframe's view
+        if state == TrackingState.OK:
+            is_kf, rests_at = (True, -1) if weak else self._need_keyframe(frame, T, len(lm))
         lm_per_kp = np.full(len(F), -1, np.int64)
         lm_per_kp[kp] = lm
         kf_id = -1
@@ -365,7 +379,7 @@ class OrbTracker:
             self.tracked_rel = (self.ref_kf, T_ref_cur)
             T_ref_cur = np.eye(4)
         self.records.append(FrameRecord(frame.index, frame.timestamp, self.ref_kf, T_ref_cur, state))
-        return TrackResult(T.copy(), True, len(lm) / max(len(F), 1), state, is_kf, len(lm), kf_id)
+        return TrackResult(T.copy(), True, len(lm) / max(len(F), 1), state, is_kf, len(lm), kf_id, rests_at)
 
     def _initialize(self, frame: Frame, F: Features) -> TrackResult:
         """First frame with enough depth-backed keypoints becomes keyframe 0 at the world origin."""

@@ -27,3 +27,4 @@ class TrackResult:
     keyframe: bool = False
     matches: int = 0
     keyframe_id: int = -1  # id of the keyframe this frame became (when ``keyframe``)
+    rests_at: int = -1  # a keyframe due by time was not made: the camera rests at this keyframe's view

@@ -106,6 +106,7 @@ class Mapper:
         self.grown = self.pruned = self.merged = 0
         self.last_losses: dict[str, float] = {}
         self.kf_loss: dict[int, float] = {}  # each keyframe's photometric loss when it was last trained
+        self.rest_paid_until = -1  # the last frame at rest (no keyframe made) whose steps ``rest_steps`` handed out
         self.view_sink: ViewSink | None = None  # not part of the map's state (checkpoints)
         self._reach_cache: tuple | None = None
         self._r2_cache: dict[Intrinsics, torch.Tensor] = {}  # squared ray radius [H, W] of the levels (vignetting)
@@ -252,13 +253,32 @@ class Mapper:
 
     # --- training ------------------------------------------------------------------------------------
     def keyframe_budget(self, kf_id: int) -> int:
-        """Steps a new keyframe gets: ``iterations_per_frame`` per frame since the stored keyframe before it, at
-        least ``iterations_per_keyframe``."""
+        """Steps a new keyframe gets: ``iterations_per_frame`` per frame since the stored keyframe before it (less
+        those frames at rest that ``rest_steps`` already paid), at least ``iterations_per_keyframe``."""
         c = self.cfg
         frame = self.store.frame_index(kf_id)
         before = [self.store.frame_index(k) for k in self.store.ids() if self.store.frame_index(k) < frame]
-        frames = frame - max(before) if before else 1
-        return max(c.iterations_per_keyframe, int(round(c.iterations_per_frame * frames)))
+        if not before:
+            return max(c.iterations_per_keyframe, int(round(c.iterations_per_frame)))
+        prev = max(before)
+        paid = min(max(self.rest_paid_until, prev), frame)
+        steps = int(round(c.iterations_per_frame * (frame - prev))) - int(round(c.iterations_per_frame * (paid - prev)))
+        return max(c.iterations_per_keyframe, steps)
+
+    def rest_steps(self, frame_index: int) -> int:
+        """Steps owed to the frames up to ``frame_index`` that made no keyframe because the camera rested at a
+        keyframe's view (``tracking.keyframe_still_translation``): ``iterations_per_frame`` for each frame since the
+        last stored keyframe or the last frame already paid; marks them paid (``keyframe_budget`` leaves them out)."""
+        stored = [self.store.frame_index(k) for k in self.store.ids()]
+        if not stored:
+            return 0
+        prev = max(stored)
+        paid = max(self.rest_paid_until, prev)
+        if frame_index <= paid:
+            return 0
+        self.rest_paid_until = frame_index
+        ipf = self.cfg.iterations_per_frame
+        return int(round(ipf * (frame_index - prev))) - int(round(ipf * (paid - prev)))
 
     def train(self, n: int, focus: int | None = None, stop: threading.Event | None = None) -> None:
         """n optimization steps. With ``focus`` every other step is on that keyframe and the others alternate
@@ -705,7 +725,7 @@ class Mapper:
                     "poses": {k: v.copy() for k, v in self._poses.items()},
                     "rng": self.rng.bit_generator.state, "iteration": self.iteration,
                     "train_seconds": self.train_seconds, "grown": self.grown, "pruned": self.pruned,
-                    "merged": self.merged, "kf_loss": dict(self.kf_loss),
+                    "merged": self.merged, "kf_loss": dict(self.kf_loss), "rest_paid_until": self.rest_paid_until,
                     "generator": self.map.gen.get_state(),
                     "ggf": self.ggf.state() if self.ggf is not None else None}
 
@@ -736,6 +756,7 @@ class Mapper:
             self.grown, self.pruned = st["grown"], st["pruned"]
             self.merged = st.get("merged", 0)  # checkpoints written before merging existed
             self.kf_loss = {int(k): float(v) for k, v in st.get("kf_loss", {}).items()}
+            self.rest_paid_until = int(st.get("rest_paid_until", -1))  # checkpoints from before it: nothing paid
             if self.ggf is not None:
                 if st.get("ggf") is None:
                     raise ValueError("checkpoint has no Geometric-Gaussian Field state but ggf.enabled is true: "

@@ -73,13 +73,13 @@ class MappingWorker:
             self._pending[kf_id] = landmarks
         self._queue.put(kf_id)
 
-    def rest(self, kf_id: int, frames: int) -> None:
-        """The camera spent ``frames`` frames at keyframe ``kf_id``'s view after the last keyframe (the input ended
-        at rest, ``tracking.keyframe_still_translation``): their budget of steps (``mapping.iterations_per_frame``
-        each), focused on it, as a keyframe after them would have had. Sequential mode only: the concurrent worker
-        trained while they arrived (``mapping.idle_training``)."""
-        if not self.concurrent and frames > 0:
-            self.mapper.train(int(round(self.cfg.iterations_per_frame * frames)), focus=kf_id)
+    def rest(self, kf_id: int, frame_index: int) -> None:
+        """The camera rests at keyframe ``kf_id``'s view at frame ``frame_index``, which made no keyframe
+        (``tracking.keyframe_still_translation``): the frames since the last keyframe (or the last such call) get
+        their steps now (``Mapper.rest_steps``), focused on that view, where the camera looks, instead of with the
+        next keyframe. Sequential mode only: the concurrent worker trains while frames arrive."""
+        if not self.concurrent:
+            self.mapper.train(self.mapper.rest_steps(frame_index), focus=kf_id)
 
     def pending(self) -> dict[int, np.ndarray | None]:
         """Keyframes queued or in training, not yet done (id -> landmarks); their images are stored first (a
