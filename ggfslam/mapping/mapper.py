@@ -68,6 +68,12 @@ class ViewSink(Protocol):
         """The render ``out`` of keyframe ``kf_id`` at T_wc [4, 4], made before step ``iteration``."""
 
 
+def _frame_steps(per_frame: float, prev: int, start: int, end: int) -> int:
+    """``per_frame`` steps for each of the frames (start, end] after the stored keyframe at frame ``prev``, rounded
+    cumulatively from prev: frames paid in parts get what they would together."""
+    return int(round(per_frame * (end - prev))) - int(round(per_frame * (start - prev)))
+
+
 class Mapper:
     """Structured Gaussian map + its optimizer, trained from stored keyframes (see the module docstring)."""
 
@@ -262,8 +268,7 @@ class Mapper:
             return max(c.iterations_per_keyframe, int(round(c.iterations_per_frame)))
         prev = max(before)
         paid = min(max(self.rest_paid_until, prev), frame)
-        steps = int(round(c.iterations_per_frame * (frame - prev))) - int(round(c.iterations_per_frame * (paid - prev)))
-        return max(c.iterations_per_keyframe, steps)
+        return max(c.iterations_per_keyframe, _frame_steps(c.iterations_per_frame, prev, paid, frame))
 
     def rest_steps(self, frame_index: int) -> int:
         """Steps owed to the frames up to ``frame_index`` that made no keyframe because the camera rested at a
@@ -277,8 +282,7 @@ class Mapper:
         if frame_index <= paid:
             return 0
         self.rest_paid_until = frame_index
-        ipf = self.cfg.iterations_per_frame
-        return int(round(ipf * (frame_index - prev))) - int(round(ipf * (paid - prev)))
+        return _frame_steps(self.cfg.iterations_per_frame, prev, paid, frame_index)
 
     def train(self, n: int, focus: int | None = None, stop: threading.Event | None = None) -> None:
         """n optimization steps. With ``focus`` every other step is on that keyframe and the others alternate
