@@ -168,3 +168,37 @@ def test_keyframe_database(orbit_desc):
     db.add(11, bows[10])  # replacing a keyframe's vector updates the inverted index
     assert db.query(bows[10], top_k=1)[0] == (11, pytest.approx(1.0))
     assert db.query(BowVector.empty()) == []
+
+
+def test_keyframe_database_query_equals_exact_scoring_of_every_keyframe(orbit_desc):
+    """The query's postings sum only preselects: what it returns is, to the bit, every stored keyframe scored
+    exactly (``bow_score``), filtered and cut as asked; it also survives a pickle (checkpoints), in either layout."""
+    import pickle
+
+    voc = Vocabulary.default()
+    bows = {k: voc.transform(d) for k, d in enumerate(orbit_desc)}
+    db = KeyframeDatabase()
+    for k, b in bows.items():
+        db.add(k, b)
+
+    def brute(q, top_k, exclude=(), min_score=0.0):
+        s = [(k, bow_score(q, b)) for k, b in bows.items() if k not in exclude]
+        s = sorted(((k, v) for k, v in s if v >= min_score and v > 0.0), key=lambda ks: (-ks[1], ks[0]))
+        return s[:top_k]
+
+    for q in range(0, len(bows), 3):
+        for top_k in (1, 2, 5, 10):
+            assert db.query(bows[q], top_k=top_k) == brute(bows[q], top_k)
+            assert db.query(bows[q], top_k=top_k, exclude={q, q + 1}) == brute(bows[q], top_k, {q, q + 1})
+        # a threshold at a stored score keeps that keyframe (>=), one just above drops it
+        second = brute(bows[q], 2)[1]
+        assert db.query(bows[q], top_k=10, min_score=second[1]) == brute(bows[q], 10, min_score=second[1])
+        assert second not in db.query(bows[q], top_k=10, min_score=np.nextafter(second[1], 1.0))
+    restored = pickle.loads(pickle.dumps(db))
+    assert restored.query(bows[7], top_k=5) == db.query(bows[7], top_k=5) and len(restored) == len(db)
+    old = KeyframeDatabase.__new__(KeyframeDatabase)  # a checkpoint from before the compact index
+    old.__setstate__({"_bows": dict(bows), "_inverted": {}})
+    assert old.query(bows[7], top_k=5) == db.query(bows[7], top_k=5)
+    for k in list(bows):  # removing every keyframe leaves no postings behind
+        db.remove(k)
+    assert len(db) == 0 and db._postings == {} and db.query(bows[3]) == []

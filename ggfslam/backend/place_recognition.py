@@ -5,11 +5,14 @@ of a cluster is the bitwise majority of its descriptors) with k-means++ seeding,
 per node and ``depth`` levels; its leaves are the words. Words carry an idf weight ``log(N / n_i)`` (N
 training images, n_i of them contain word i); an image becomes a sparse, L1-normalised tf-idf vector,
 and two vectors are compared with DBoW2's L1 score ``1 - |a - b|_1 / 2`` in [0, 1]. A keyframe database
-keeps an inverted index (word -> keyframes) so a query only scores keyframes sharing a word with it.
+keeps an inverted index (word -> keyframes, with their weights) so a query only scores keyframes sharing a word
+with it.
 """
 from __future__ import annotations
 
 import functools
+import threading
+from array import array
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from importlib import resources
@@ -381,11 +384,30 @@ def _load_default() -> Vocabulary:
 # keyframe database
 # --------------------------------------------------------------------------------------------------
 class KeyframeDatabase:
-    """Inverted index of keyframe BoW vectors: add / remove keyframes and query the most similar ones."""
+    """Inverted index of keyframe BoW vectors: add / remove keyframes and query the most similar ones.
+
+    Each word's postings are two compact arrays (keyframe ids int32, their weights float32: 8 bytes an entry;
+    Python sets of ids took ~84 KB a keyframe, about a sixth of what tracking keeps per keyframe). A query sums
+    DBoW2's score over the postings of its words at once (for L1-normalised vectors ``1 - |a - b|_1 / 2`` is the sum
+    of ``min(a_w, b_w)`` over shared words), keeps the keyframes that can reach ``min_score`` and the top ``top_k``
+    (with a margin far above the float32 weights' rounding) and scores those exactly with ``bow_score``: the result
+    is that of scoring every keyframe exactly, at the cost of a few of them. Thread-safe (tracking relocalises
+    from it while the backend adds keyframes)."""
+
+    MARGIN = 1e-5  # >> twice the summed float32 rounding of the postings' weights (~1e-7)
 
     def __init__(self):
         self._bows: dict[int, BowVector] = {}
-        self._inverted: dict[int, set[int]] = {}  # word -> keyframes containing it
+        self._postings: dict[int, tuple[array, array]] = {}  # word -> (keyframe ids 'i', their weights 'f')
+        self._lock = threading.Lock()
+
+    def __getstate__(self) -> dict:  # checkpoints keep the vectors; the index and the lock are rebuilt
+        return {"_bows": self._bows}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__()  # also reads checkpoints from before the compact index (their ``_inverted`` sets)
+        for kf_id, bow in state["_bows"].items():
+            self.add(kf_id, bow)
 
     def __len__(self) -> int:
         return len(self._bows)
@@ -406,25 +428,53 @@ class KeyframeDatabase:
         kf_id = int(kf_id)
         if kf_id in self._bows:
             self.remove(kf_id)
-        self._bows[kf_id] = bow
-        for w in bow.words.tolist():
-            self._inverted.setdefault(w, set()).add(kf_id)
+        with self._lock:
+            self._bows[kf_id] = bow
+            for w, v in zip(bow.words.tolist(), bow.weights.tolist()):
+                p = self._postings.get(w)
+                if p is None:
+                    p = self._postings[w] = (array("i"), array("f"))
+                ids, weights = p
+                ids.append(kf_id)
+                weights.append(v)
 
     def remove(self, kf_id: int) -> None:
         """Forget a keyframe (no error if it is absent)."""
-        bow = self._bows.pop(int(kf_id), None)
-        if bow is None:
-            return
-        for w in bow.words.tolist():
-            s = self._inverted.get(w)
-            if s is not None:
-                s.discard(int(kf_id))
-                if not s:
-                    del self._inverted[w]
+        with self._lock:
+            bow = self._bows.pop(int(kf_id), None)
+            if bow is None:
+                return
+            for w in bow.words.tolist():
+                ids, weights = self._postings[w]
+                i = ids.index(int(kf_id))
+                del ids[i], weights[i]
+                if not ids:
+                    del self._postings[w]
 
     def score(self, bow: BowVector, kf_ids: Iterable[int]) -> dict[int, float]:
         """L1 scores of ``bow`` against the given stored keyframes (absent ids are skipped)."""
         return {int(k): bow_score(bow, self._bows[int(k)]) for k in kf_ids if int(k) in self._bows}
+
+    def _shared_scores(self, bow: BowVector) -> tuple[np.ndarray, np.ndarray]:
+        """Keyframes sharing a word with ``bow`` (ids [C] ascending) and their scores [C] from the float32
+        postings (within ``MARGIN / 2`` of ``bow_score``)."""
+        ids, weights, q, n = [], [], [], []
+        with self._lock:
+            for w, v in zip(bow.words.tolist(), bow.weights.tolist()):
+                p = self._postings.get(w)
+                if p is not None:  # views, concatenated (copied) before the lock is released: the arrays may grow
+                    ids.append(np.frombuffer(p[0], np.int32))
+                    weights.append(np.frombuffer(p[1], np.float32))
+                    q.append(v)
+                    n.append(len(p[0]))
+            if not ids:
+                return np.zeros(0, np.int64), np.zeros(0)
+            ids_all = np.concatenate(ids)  # [E]
+            w_all = np.concatenate(weights).astype(np.float64)  # [E]
+            del ids, weights
+        total = np.bincount(ids_all, weights=np.minimum(w_all, np.repeat(q, n)))  # [max id + 1]
+        present = np.flatnonzero(np.bincount(ids_all, minlength=len(total)))  # [C]
+        return present, total[present]
 
     def query(self, bow: BowVector, top_k: int = 10, exclude: set[int] | None = None,
               min_score: float = 0.0) -> list[tuple[int, float]]:
@@ -432,12 +482,18 @@ class KeyframeDatabase:
 
         Keyframes in ``exclude`` and those scoring below ``min_score`` are left out; ties go to the lower id.
         """
-        exclude = exclude or set()
-        candidates: set[int] = set()
-        for w in bow.words.tolist():  # only keyframes sharing a word can score above 0
-            candidates |= self._inverted.get(w, set())
-        candidates -= set(int(e) for e in exclude)
-        scored = [(k, bow_score(bow, self._bows[k])) for k in candidates]
+        top_k = max(int(top_k), 0)
+        ids, approx = self._shared_scores(bow)  # only keyframes sharing a word can score above 0
+        ok = approx >= min_score - self.MARGIN
+        if exclude:
+            ok &= ~np.isin(ids, np.fromiter((int(e) for e in exclude), np.int64))
+        ids, approx = ids[ok], approx[ok]
+        if 0 < top_k < len(ids):  # every one of the exact top_k is within 2 x MARGIN / 2 of the approximate k-th
+            kth = np.partition(approx, len(approx) - top_k)[len(approx) - top_k]
+            ids = ids[approx >= kth - self.MARGIN]
+        with self._lock:
+            bows = [(int(k), self._bows.get(int(k))) for k in ids]
+        scored = [(k, bow_score(bow, b)) for k, b in bows if b is not None]
         scored = [(k, s) for k, s in scored if s >= min_score and s > 0.0]
         scored.sort(key=lambda ks: (-ks[1], ks[0]))
-        return scored[: max(int(top_k), 0)]
+        return scored[:top_k]
