@@ -387,7 +387,7 @@ class KeyframeDatabase:
     """Inverted index of keyframe BoW vectors: add / remove keyframes and query the most similar ones.
 
     Each word's postings are two compact arrays (keyframe ids int32, their weights float32: 8 bytes an entry;
-    Python sets of ids took ~84 KB a keyframe, about a sixth of what tracking keeps per keyframe). A query sums
+    Python sets of ids took ~84 KB a keyframe, about a fifth of what tracking keeps per keyframe). A query sums
     DBoW2's score over the postings of its words at once (for L1-normalised vectors ``1 - |a - b|_1 / 2`` is the sum
     of ``min(a_w, b_w)`` over shared words), keeps the keyframes that can reach ``min_score`` and the top ``top_k``
     (with a margin far above the float32 weights' rounding) and scores those exactly with ``bow_score``: the result
@@ -399,7 +399,7 @@ class KeyframeDatabase:
     def __init__(self):
         self._bows: dict[int, BowVector] = {}
         self._postings: dict[int, tuple[array, array]] = {}  # word -> (keyframe ids 'i', their weights 'f')
-        self._lock = threading.Lock()
+        self._lock = threading.RLock()
 
     def __getstate__(self) -> dict:  # checkpoints keep the vectors; the index and the lock are rebuilt
         return {"_bows": self._bows}
@@ -426,9 +426,10 @@ class KeyframeDatabase:
     def add(self, kf_id: int, bow: BowVector) -> None:
         """Store (or replace) a keyframe's BoW vector."""
         kf_id = int(kf_id)
-        if kf_id in self._bows:
-            self.remove(kf_id)
+        if not 0 <= kf_id < 2**31:
+            raise ValueError(f"keyframe id {kf_id}: expected 0 <= id < 2^31")
         with self._lock:
+            self.remove(kf_id)  # re-adding an id replaces its vector
             self._bows[kf_id] = bow
             for w, v in zip(bow.words.tolist(), bow.weights.tolist()):
                 p = self._postings.get(w)
