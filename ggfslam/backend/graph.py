@@ -7,6 +7,8 @@ pixel and depth errors share one whitened 3-vector. Keypoints without depth use 
 """
 from __future__ import annotations
 
+import functools
+
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, P, X
@@ -31,12 +33,19 @@ def observation_factor(
     """The robust (Huber) RGB-D factor for one keypoint observation; a projection factor when depth is 0."""
     if depth > 0:
         ur = uv[0] - stereo.fx() * stereo.baseline() / depth
-        noise = gtsam.noiseModel.Robust.Create(
-            gtsam.noiseModel.mEstimator.Huber.Create(huber_stereo), gtsam.noiseModel.Isotropic.Sigma(3, sigma))
+        noise = robust_isotropic(3, float(sigma), huber_stereo)
         return gtsam.GenericStereoFactor3D(gtsam.StereoPoint2(uv[0], ur, uv[1]), noise, X(kf_id), L(lm_id), stereo)
-    noise = gtsam.noiseModel.Robust.Create(
-        gtsam.noiseModel.mEstimator.Huber.Create(huber_mono), gtsam.noiseModel.Isotropic.Sigma(2, sigma))
+    noise = robust_isotropic(2, float(sigma), huber_mono)
     return gtsam.GenericProjectionFactorCal3_S2(gtsam.Point2(uv[0], uv[1]), noise, X(kf_id), L(lm_id), mono)
+
+
+@functools.lru_cache(maxsize=1024)
+def robust_isotropic(dim: int, sigma: float, huber: float):
+    """Huber-robust isotropic noise of ``dim`` rows, made once per (dim, sigma, huber) and shared by the factors
+    (GTSAM's noise models are immutable; a local BA late in a long run makes ~13k factors from a few pyramid-level
+    sigmas, and building the model took a third of each factor's cost)."""
+    return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(huber),
+                                          gtsam.noiseModel.Isotropic.Sigma(dim, sigma))
 
 
 def odometry_link_factor(other_id: int, kf_id: int, T_other_kf: np.ndarray, sigmas: tuple[float, float]):
