@@ -454,7 +454,9 @@ class KeyframeDatabase:
 
     def score(self, bow: BowVector, kf_ids: Iterable[int]) -> dict[int, float]:
         """L1 scores of ``bow`` against the given stored keyframes (absent ids are skipped)."""
-        return {int(k): bow_score(bow, self._bows[int(k)]) for k in kf_ids if int(k) in self._bows}
+        with self._lock:
+            stored = [(int(k), self._bows.get(int(k))) for k in kf_ids]
+        return {k: bow_score(bow, b) for k, b in stored if b is not None}
 
     def _shared_scores(self, bow: BowVector) -> tuple[np.ndarray, np.ndarray]:
         """Keyframes sharing a word with ``bow`` (ids [C] ascending) and their scores [C] from the float32
@@ -492,9 +494,6 @@ class KeyframeDatabase:
         if 0 < top_k < len(ids):  # every one of the exact top_k is within 2 x MARGIN / 2 of the approximate k-th
             kth = np.partition(approx, len(approx) - top_k)[len(approx) - top_k]
             ids = ids[approx >= kth - self.MARGIN]
-        with self._lock:
-            bows = [(int(k), self._bows.get(int(k))) for k in ids]
-        scored = [(k, bow_score(bow, b)) for k, b in bows if b is not None]
-        scored = [(k, s) for k, s in scored if s >= min_score and s > 0.0]
+        scored = [(k, s) for k, s in self.score(bow, ids).items() if s >= min_score and s > 0.0]
         scored.sort(key=lambda ks: (-ks[1], ks[0]))
         return scored[:top_k]

@@ -263,7 +263,7 @@ class Mapper:
         those frames at rest that ``rest_steps`` already paid), at least ``iterations_per_keyframe``."""
         c = self.cfg
         frame = self.store.frame_index(kf_id)
-        before = [self.store.frame_index(k) for k in self.store.ids() if self.store.frame_index(k) < frame]
+        before = [f for f in map(self.store.frame_index, self.store.ids()) if f < frame]
         if not before:
             return max(c.iterations_per_keyframe, int(round(c.iterations_per_frame)))
         prev = max(before)
