@@ -38,7 +38,7 @@ def tracker_classes() -> dict[tuple[str, str], type]:
     from ggfslam.backend.backend import Backend, BackendStats
     from ggfslam.backend.loop_closure import LoopClosureConfig, LoopDetector, _Keyframe
     from ggfslam.backend.place_recognition import BowVector, KeyframeDatabase, Vocabulary
-    from ggfslam.backend.slam_map import KeyFrame, SlamMap
+    from ggfslam.backend.slam_map import KeyFrame, RetiredKeyFrame, SlamMap
     from ggfslam.config import BackendConfig, TrackingConfig
     from ggfslam.data.types import Camera, Frame
     from ggfslam.frontend.dense_odometry import DenseOdometry
@@ -48,8 +48,8 @@ def tracker_classes() -> dict[tuple[str, str], type]:
     from ggfslam.frontend.types import TrackingState
 
     classes = [Backend, BackendStats, LoopClosureConfig, LoopDetector, _Keyframe, BowVector, KeyframeDatabase,
-               Vocabulary, KeyFrame, SlamMap, BackendConfig, TrackingConfig, Camera, Frame, DenseOdometry, Features,
-               OrbExtractor, Plane, FrameRecord, OrbTracker, TrackingState, set, frozenset]
+               Vocabulary, KeyFrame, RetiredKeyFrame, SlamMap, BackendConfig, TrackingConfig, Camera, Frame,
+               DenseOdometry, Features, OrbExtractor, Plane, FrameRecord, OrbTracker, TrackingState, set, frozenset]
     out = {(c.__module__, c.__qualname__): c for c in classes}
     out.update({(g.__module__, g.__qualname__): g for g in NUMPY_GLOBALS})
     # numpy pickles record the module that defined a function at save time (numpy 1.x: numpy.core)

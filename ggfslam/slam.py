@@ -121,6 +121,8 @@ def _keyframe_landmarks(tracker, kf_id: int) -> np.ndarray:
     """World positions [L, 3] of the live landmarks a keyframe observes."""
     m = tracker.map
     with m.lock:
+        if kf_id not in m.keyframes:  # culled by the backend before the mapper took it (concurrent mode)
+            return np.zeros((0, 3))
         ids = m.keyframes[kf_id].landmark_ids
         ids = ids[ids >= 0]
         ids = ids[m.alive[ids]]

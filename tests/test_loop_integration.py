@@ -18,7 +18,7 @@ def lap():
     return SyntheticSequence(n_frames=1100, width=320, height=240, trajectory="orbit", seed=5, depth_noise=True)
 
 
-def _run(seq, loop_closure: bool, global_ba: bool = True, sparse: bool = True, max_frames: int = 20):
+def _run(seq, loop_closure: bool, global_ba: bool = True, sparse: bool = True, max_frames: int = 20, **backend):
     # sparse: few features and no landmark fusion: the lap drifts by about a centimetre, which the loop has to
     # remove (with fusion the local map itself re-finds the start of the lap and leaves the loop little to correct).
     # The lap is tracked at every 5th frame and keyframe_max_frames counts the sequence's frames: 20 makes a
@@ -26,7 +26,7 @@ def _run(seq, loop_closure: bool, global_ba: bool = True, sparse: bool = True, m
     tcfg = (TrackingConfig(n_features=300, keyframe_max_frames=max_frames) if sparse
             else TrackingConfig(keyframe_max_frames=max_frames))
     backend = Backend(seq.camera, tcfg, BackendConfig(loop_closure=loop_closure, fusion=not sparse,
-                                                      global_ba=global_ba))
+                                                      global_ba=global_ba, **backend))
     tracker = OrbTracker(seq.camera, tcfg, backend)
     for i in FRAMES:
         tracker.track(seq[i])
@@ -80,3 +80,31 @@ def test_global_ba_after_the_loop_does_not_undo_it(runs):
     # measured: 0.92 vs 0.93 cm here; on seed 1 0.93 vs 2.36 cm, and on synthetic:2000 0.32 vs 3.18 cm
     assert ate_with <= 1.01 * ate_graph_only, (ate_with, ate_graph_only)
     assert runs[True][0].summary()["global_ba_runs"] == 0  # skipped without fusion
+
+
+@pytest.mark.parametrize("concurrent", [False, True], ids=["sequential", "concurrent"])
+def test_culled_keyframes_keep_following_the_trajectory(lap, concurrent):
+    # with keyframe culling (backend.keyframe_culling; in concurrent mode tracking holds a reference keyframe the
+    # backend must not cull meanwhile) each retired keyframe's pose, carried by the keyframe it rides on through
+    # bundle adjustment, the loop closure and global BA, still agrees with the ground truth. Measured: sequential
+    # ATE 0.83 cm (0.78 without culling), 5 of 64 keyframes retired, within 1.9 cm of the ground truth relative to
+    # the first keyframe (the kept ones 1.1 cm median, 2.3 cm at most); concurrent (not repeatable) ATE 0.87-0.94 cm
+    # over four runs (0.80-0.82 without), retired ones 1.6-1.9 cm median, 2.1-2.5 cm at most
+    backend, ate = _run(lap, True, sparse=False, keyframe_culling=True, concurrent=concurrent, solver="thread")
+    m = backend.map
+    assert m.loops and backend.stats.keyframes_culled == len(m.retired) > 0
+    assert all(r.parent in m.keyframes for r in m.retired.values())
+    kf0 = min(m.keyframes)
+    gt0 = lap.poses[m.keyframes[kf0].frame_index]
+
+    def error_cm(k: int, frame: int) -> float:
+        rel_est = invert(m.pose(kf0)) @ m.pose(k)
+        rel_gt = invert(gt0) @ lap.poses[frame]
+        return 100 * float(np.linalg.norm(rel_est[:3, 3] - rel_gt[:3, 3]))
+
+    retired = [error_cm(k, r.frame_index) for k, r in m.retired.items()]
+    kept = [error_cm(k, kf.frame_index) for k, kf in m.keyframes.items()]
+    if concurrent:
+        assert ate < 1.2 and max(retired) < 4.0, (ate, retired)
+    else:
+        assert ate < 0.9 and max(retired) < 3.0 and max(kept) < 3.0, (ate, retired, kept)

@@ -45,6 +45,7 @@ class BackendStats:
     final_ba_seconds: float = 0.0
     solved_in_process: int = 0  # bundle adjustments the solver process solved (backend.solver: process)
     solver_fallback: str = ""  # why later ones were solved in the tracking process ("": none were)
+    keyframes_culled: int = 0  # keyframes retired from the graph (backend.keyframe_culling)
 
 
 class Backend:
@@ -160,6 +161,21 @@ class Backend:
             self.stats.outliers_removed += stats.outliers
         if self.loop_detector is not None:
             self._detect_loop(self.map.keyframes[kf_id])
+        if self.bcfg.keyframe_culling:
+            self._cull_keyframes(kf_id)
+
+    def _cull_keyframes(self, kf_id: int) -> None:
+        """Retire the redundant keyframes covisible with ``kf_id`` (``backend.keyframe_culling``) from the map, the
+        loop detector and the GCGR source."""
+        from ggfslam.backend.keyframe_culling import cull_keyframes
+
+        retired = cull_keyframes(self.map, kf_id, self.bcfg.culling_redundancy, self.bcfg.culling_observers)
+        for k in retired:
+            if self.loop_detector is not None:
+                self.loop_detector.remove_keyframe(k)
+            if self.gcgr is not None:
+                self.gcgr.remove_keyframe(k)
+        self.stats.keyframes_culled += len(retired)
 
     def _detect_loop(self, kf: KeyFrame) -> None:
         from ggfslam.backend.loop_correction import close_loop
@@ -198,7 +214,7 @@ class Backend:
             self.stats.global_ba_seconds += stats.seconds
         self.stats.outliers_removed += stats.outliers
         if self.loop_detector is not None:
-            self.loop_detector.update_poses(self.map.poses())
+            self.loop_detector.update_poses(self.map.graph_poses())
         log.info("%s: %d keyframes, %d landmarks, %d GCGR factors, error %.0f -> %.0f (%.1f s)", what, stats.keyframes,
                  stats.landmarks, stats.gcgr_factors, stats.error_before, stats.error_after, stats.seconds)
 
@@ -264,7 +280,8 @@ class Backend:
         """Backend figures for metrics.json."""
         s = self.stats
         return {
-            "keyframes": s.keyframes, "landmarks": int(self.map.alive.sum()), "ba_runs": s.ba_runs,
+            "keyframes": s.keyframes, "keyframes_culled": s.keyframes_culled, "landmarks": int(self.map.alive.sum()),
+            "ba_runs": s.ba_runs,
             "ba_failed": s.ba_failed, **({"ba_first_failure": s.ba_failure} if s.ba_failure else {}),
             "ba_ms_mean": 1000 * float(np.mean(s.ba_seconds)) if s.ba_seconds else 0.0,
             "ba_ms_max": 1000 * float(np.max(s.ba_seconds)) if s.ba_seconds else 0.0,

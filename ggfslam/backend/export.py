@@ -25,7 +25,9 @@ with their integer values in ``gtsam_keys``:
   kf, pixels ([u, v] at ``resolution`` = [width, height] of the factors), valid (rows with a map surface),
   sigma (of one row), map_iteration (of the render they linearize) and rows_rmse (root mean square of the
   unwhitened rows at the keyframe's current pose: metres for depth, ``0.05 (1 - cos)`` for normals). Their ``error`` is GTSAM's, from the factor's first-order model (no render);
-* ``covisibility``: kf_a < kf_b, shared (living landmarks both see), only pairs sharing >= MIN_COVISIBILITY.
+* ``covisibility``: kf_a < kf_b, shared (living landmarks both see), only pairs sharing >= MIN_COVISIBILITY;
+* ``retired_keyframes``: keyframes culled from the graph (``backend.keyframe_culling``; no factors): id,
+  frame_index, timestamp, parent (the keyframe in the graph whose pose carries it), T_parent_kf, T_wc.
 """
 from __future__ import annotations
 
@@ -44,7 +46,7 @@ from ggfslam.data.types import Camera
 __all__ = ["FORMAT_VERSION", "graph_to_dict", "write_graph_json", "load_graph_networkx", "observation_errors",
            "huber_loss", "MIN_COVISIBILITY"]
 
-FORMAT_VERSION = "ggfslam-graph/3"  # 2: plane landmarks and plane factors; 3: GCGR factors
+FORMAT_VERSION = "ggfslam-graph/4"  # 2: plane landmarks and plane factors; 3: GCGR factors; 4: retired keyframes
 MIN_COVISIBILITY = 15  # shared landmarks for a covisibility edge (local BA's min_shared)
 
 
@@ -59,6 +61,9 @@ def graph_to_dict(smap: SlamMap, camera: Camera, tcfg: TrackingConfig, bcfg: Bac
         kf_ids = sorted(smap.keyframes)
         kfs = [smap.keyframes[k] for k in kf_ids]
         poses = {k: smap.keyframes[k].T_wc.copy() for k in kf_ids}
+        retired = [{"id": r.id, "frame_index": int(r.frame_index), "timestamp": float(r.timestamp),
+                    "parent": int(r.parent), "T_parent_kf": r.T_parent_kf.tolist(), "T_wc": smap.pose(r.id).tolist()}
+                   for _, r in sorted(smap.retired.items())]
         lm_ids = smap.alive_ids()  # [P]
         positions = smap.positions[lm_ids].copy()  # [P, 3]
         obs_kf, obs_lm, obs_kp = [], [], []
@@ -166,7 +171,8 @@ def graph_to_dict(smap: SlamMap, camera: Camera, tcfg: TrackingConfig, bcfg: Bac
             "error_definition": "GTSAM factor.error (Huber kernel on observations); chi2 = squared whitened "
                                 "residual without kernel",
             "plane_sigmas": list(bcfg.plane_sigmas),
-            "counts": {"keyframes": len(kf_ids), "landmarks": len(lm_ids), "planes": len(planes),
+            "counts": {"keyframes": len(kf_ids), "retired_keyframes": len(retired), "landmarks": len(lm_ids),
+                       "planes": len(planes),
                        "factors": len(factors),
                        "observations": m, "covisibility_edges": len(covis)},
             "factors_by_type": by_type,
@@ -180,6 +186,7 @@ def graph_to_dict(smap: SlamMap, camera: Camera, tcfg: TrackingConfig, bcfg: Bac
                     "observations": sum(1 for _, q, _ in plane_obs if q == pid)} for pid, pw in sorted(planes.items())],
         "factors": factors,
         "covisibility": covis,
+        "retired_keyframes": retired,
     }
 
 

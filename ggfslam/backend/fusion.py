@@ -74,7 +74,8 @@ def fuse_into(smap: SlamMap, lm: np.ndarray, target_id: int, camera: Camera, cfg
             added += 1
         elif old != src:
             # the better-established landmark survives: more observations, then the older one
-            rank_src, rank_old = (len(smap.observations[src]), -src), (len(smap.observations[old]), -old)
+            rank_src = (len(smap.observations[src]), -smap.born[src])
+            rank_old = (len(smap.observations[old]), -smap.born[old])
             keep, drop = (src, old) if rank_src > rank_old else (old, src)
             smap.merge_landmarks(keep=keep, drop=drop)
             merged += 1

@@ -51,6 +51,7 @@ class GCGRSource:
                               "gcgr.width differs from mapping.train_width, or gcgr.exclude_own_anchors is true): GCGR "
                               "would have no view of the map")
         self._first_step: dict[int, int] = {}  # keyframe -> map iteration of its first training step
+        self._retired: set[int] = set()  # keyframes culled from the graph: no BA asks for their factors again
         self._sensors: OrderedDict[int, SensorView] = OrderedDict()
         self._models: OrderedDict[int, tuple[GCGRModel, int]] = OrderedDict()  # id -> (model, map iteration)
         self._lock = threading.Lock()  # tracking adds keyframes while the backend thread builds factors
@@ -80,6 +81,14 @@ class GCGRSource:
             self._sensors[kf_id] = view
             while len(self._sensors) > CACHE:
                 self._sensors.popitem(last=False)
+
+    def remove_keyframe(self, kf_id: int) -> None:
+        """Forget a keyframe culled from the graph (its sensor view, its model; its training renders are refused)."""
+        with self._lock:
+            self._retired.add(kf_id)
+            self._sensors.pop(kf_id, None)
+            self._models.pop(kf_id, None)
+            self._first_step.pop(kf_id, None)
 
     def sensor(self, kf_id: int) -> SensorView | None:
         """The keyframe's sensor view: kept since insertion, else from the mapper's store, else None."""
@@ -139,6 +148,8 @@ class GCGRSource:
         if not self.harvest:
             return False
         with self._lock:
+            if kf_id in self._retired:
+                return False
             first = self._first_step.setdefault(kf_id, iteration)
             cached = self._models.get(kf_id)
         if iteration - first < self.cfg.harvest_every:

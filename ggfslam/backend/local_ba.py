@@ -80,6 +80,7 @@ class BAProblem:
     plane_obs: list  # (keyframe, plane id, camera-frame coefficients [4])
     planes_w: dict  # plane id -> world coefficients [4]
     gcgr: list = field(default_factory=list)  # factors.gcgr_linear.LinearGCGR of optimized keyframes
+    generations: np.ndarray | None = None  # [L] the landmarks' slot generations (a slot reused since is passed over)
 
 
 @dataclass
@@ -166,13 +167,14 @@ def ba_problem(smap: SlamMap, kf_id: int, camera: Camera, tcfg: TrackingConfig, 
         poses = {k: smap.keyframes[k].T_wc.copy() for k in observers}
         feats = {k: smap.keyframes[k].features for k in observers}
         positions = smap.positions[lms].copy()
+        generations = smap.generation[lms].copy()
     if len(window) - len(fixed & set(window)) < 1 or len(lms) < 10:
         return None
     uv = np.array([feats[k].uv[kp] for k, _, kp in obs], np.float64).reshape(-1, 2)  # [M, 2]
     depth = np.array([feats[k].depth[kp] for k, _, kp in obs], np.float64)  # [M]
     sigmas = tcfg.pixel_sigma * level_scale[np.array([feats[k].octave[kp] for k, _, kp in obs], np.int64)]  # [M]
     return BAProblem(camera, tcfg, bcfg, bcfg.iterations if iterations is None else iterations, window, fixed,
-                     poses, lms, positions, obs, uv, depth, sigmas, links, plane_obs, planes_w)
+                     poses, lms, positions, obs, uv, depth, sigmas, links, plane_obs, planes_w, generations=generations)
 
 
 def build_graph(problem: BAProblem, gcgr=None) -> LocalGraph:
@@ -281,10 +283,14 @@ def apply_solution(smap: SlamMap, problem: BAProblem, sol: BASolution) -> None:
         for k, T in sol.poses.items():
             if k in smap.keyframes:
                 smap.keyframes[k].T_wc = T
-        alive = smap.alive[problem.lms]  # [L]
-        smap.positions[problem.lms[alive]] = sol.positions[alive]
+        same = smap.alive[problem.lms]  # [L] still alive and (below) still the same landmark
+        if problem.generations is not None:
+            same &= smap.generation[problem.lms] == problem.generations
+        smap.positions[problem.lms[same]] = sol.positions[same]
+        unchanged = set(problem.lms[same].tolist())
         for lm, k in sol.outliers:
-            smap.remove_observation(lm, k)
+            if lm in unchanged:
+                smap.remove_observation(lm, k)
         for pid, coeffs in sol.planes.items():
             smap.planes[pid] = coeffs
 

@@ -20,7 +20,7 @@ _COVIS_MIN_SHARED = 100  # covisibility edges only between keyframes sharing thi
 
 def loop_edges(smap: SlamMap, loop: LoopResult) -> list[PoseEdge]:
     """Consecutive-keyframe and strong covisibility edges from the current estimates, plus the loop edge."""
-    poses = smap.poses()
+    poses = smap.graph_poses()
     ids = sorted(poses)
     covis = {a: smap.covisibility(a) for a in ids}
     edges = [_relative_edge(poses, a, b, "odometry", covis[a].get(b, 0)) for a, b in zip(ids[:-1], ids[1:])]
@@ -62,14 +62,14 @@ def close_loop(smap: SlamMap, loop: LoopResult, solve=optimize_pose_graph) -> di
     Returns the new keyframe poses.
     """
     with smap.lock:
-        old = smap.poses()
+        old = smap.graph_poses()
         edges = loop_edges(smap, loop)
         # the first loop has no other loop to disagree with: after verification it is trusted (as ORB-SLAM does);
         # later ones go through the robust solve, which drops a loop edge the others contradict
         robust = bool(smap.loops)
     new = solve(old, edges, {loop.match_id}, robust)
     with smap.lock:
-        for k, T in sorted(smap.poses().items()):
+        for k, T in sorted(smap.graph_poses().items()):
             if k not in new:  # made while the graph was solved: keep its pose relative to its predecessor
                 before = max((j for j in new if j < k), default=None)
                 if before is None:
@@ -80,7 +80,12 @@ def close_loop(smap: SlamMap, loop: LoopResult, solve=optimize_pose_graph) -> di
                 smap.keyframes[k].T_wc = T
         smap.loops.append((loop.match_id, loop.query_id, loop.T_match_query.copy(), loop_covariance(loop)))
         ids = smap.alive_ids()
-        smap.positions[ids] = correct_points(smap.positions[ids], smap.created_by[ids], old, new)
+        # a point made by a retired keyframe moves with the keyframe that keyframe rides on
+        refs = smap.created_by[ids]
+        for k in np.unique(refs).tolist():
+            if k >= 0 and k not in smap.keyframes and k in smap.retired:
+                refs[refs == k] = smap.living(k)
+        smap.positions[ids] = correct_points(smap.positions[ids], refs, old, new)
         q, m = smap.keyframes[loop.query_id], smap.keyframes[loop.match_id]
         for iq, im in loop.inlier_pairs:
             lq, lm = int(q.landmark_ids[iq]), int(m.landmark_ids[im])

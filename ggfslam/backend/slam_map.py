@@ -1,13 +1,19 @@
-"""The SLAM map the backend owns: keyframes (poses, features) and landmarks (positions, observations)."""
+"""The SLAM map the backend owns: keyframes (poses, features) and landmarks (positions, observations).
+
+Keyframes culled from the graph (``backend.keyframe_culling``) become ``RetiredKeyFrame``s: their features and
+observations are gone, their pose rides rigidly on a parent keyframe, so frames tracked against them and the
+mapper's views of them still have a pose that follows every correction.
+"""
 from __future__ import annotations
 
 import threading
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ggfslam.frontend.features import Features
+from ggfslam.geometry.se3 import invert
 
 
 @dataclass
@@ -21,6 +27,17 @@ class KeyFrame:
     features: Features
     landmark_ids: np.ndarray  # [N] int64
     meta: dict = field(default_factory=dict)
+
+
+@dataclass
+class RetiredKeyFrame:
+    """A keyframe culled from the graph: T_wc = T_wc of ``parent`` (a keyframe in the graph) @ T_parent_kf."""
+
+    id: int
+    frame_index: int
+    timestamp: float
+    parent: int
+    T_parent_kf: np.ndarray  # [4, 4]
 
 
 class SlamMap:
@@ -37,28 +54,45 @@ class SlamMap:
         self.n_found = np.zeros(capacity, dtype=np.int64)  # [C] frames where tracking matched it
         self.ref_distance = np.ones(capacity)  # [C] camera distance when created (predicts its pyramid level)
         self.ref_octave = np.zeros(capacity, dtype=np.int64)  # [C] pyramid level when created
+        self.generation = np.zeros(capacity, dtype=np.int64)  # [C] times the slot was given to a new landmark
+        self.born = np.zeros(capacity, dtype=np.int64)  # [C] creation order (ids are not: slots are reused)
+        self.created = 0  # landmarks ever created
         self.observations: list[dict[int, int]] = [{} for _ in range(capacity)]  # kf id -> keypoint index
-        self.size = 0
+        self.size = 0  # slots ever used; dead landmarks' slots below it are given to new ones (``_free``)
+        # dead slots, oldest death first: no keyframe refers to them, so new landmarks reuse them and the arrays
+        # stop growing with every point ever made (a long run culls tens of thousands)
+        self._free: deque[int] = deque()
         # closed loops: (match kf, query kf, T_match_query [4, 4], covariance [6, 6] of the loop edge)
         self.loops: list[tuple[int, int, np.ndarray, np.ndarray]] = []
         # plane landmarks (see backend/plane_map.py): id -> world coefficients [4] (n, d), n . x + d = 0
         self.planes: dict[int, np.ndarray] = {}
         self.plane_observations: dict[int, dict[int, np.ndarray]] = {}  # plane id -> {kf id: camera coefficients [4]}
+        self.retired: dict[int, RetiredKeyFrame] = {}  # culled keyframes, by id
+        self.tracking_ref = -1  # tracking's reference keyframe: never culled while it is one
 
     def __getstate__(self) -> dict:  # checkpoints: the lock is per process
         state = self.__dict__.copy()
         del state["lock"]
+        state["_free"] = list(self._free)  # a plain list: the checkpoint reader calls no constructors
         return state
 
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
+        self.__dict__.setdefault("retired", {})  # checkpoints from before keyframe culling
+        self.__dict__.setdefault("tracking_ref", -1)
+        if "_free" not in state:  # checkpoints from before slots were reused: ids were the creation order
+            self.generation = np.zeros(len(self.alive), dtype=np.int64)
+            self.born = np.arange(len(self.alive), dtype=np.int64)
+            self.created = self.size
+            self._free = np.nonzero(~self.alive[: self.size])[0].tolist()
+        self._free = deque(self._free)
         self.lock = threading.RLock()
 
     # --- landmarks --------------------------------------------------------------------------------
     def _grow(self) -> None:
         cap = 2 * len(self.alive)
         for name in ("positions", "descriptors", "alive", "created_by", "n_visible", "n_found", "ref_distance",
-                     "ref_octave"):
+                     "ref_octave", "generation", "born"):
             old = getattr(self, name)
             new = np.zeros((cap,) + old.shape[1:], dtype=old.dtype)
             if name == "created_by":
@@ -70,9 +104,14 @@ class SlamMap:
     def add_landmarks(self, positions: np.ndarray, descriptors: np.ndarray, kf: KeyFrame, kp_idx: np.ndarray) -> np.ndarray:
         """Create landmarks at positions [K, 3] observed by keyframe ``kf`` at keypoints kp_idx [K]; returns ids [K]."""
         with self.lock:
-            while self.size + len(positions) > len(self.alive):
+            reused = [self._free.popleft() for _ in range(min(len(positions), len(self._free)))]
+            fresh = len(positions) - len(reused)
+            while self.size + fresh > len(self.alive):
                 self._grow()
-            ids = np.arange(self.size, self.size + len(positions))
+            ids = np.concatenate([np.array(reused, np.int64), np.arange(self.size, self.size + fresh)])  # [K]
+            self.generation[reused] += 1
+            self.born[ids] = self.created + np.arange(len(ids))
+            self.created += len(ids)
             self.positions[ids] = positions
             self.descriptors[ids] = descriptors
             self.alive[ids] = True
@@ -84,12 +123,14 @@ class SlamMap:
             for lm, k in zip(ids, kp_idx):
                 self.observations[lm] = {kf.id: int(k)}
             kf.landmark_ids[kp_idx] = ids
-            self.size += len(positions)
+            self.size += fresh
             return ids
 
     def add_observation(self, lm: int, kf: KeyFrame, kp: int) -> None:
-        """Record that keyframe ``kf`` sees landmark ``lm`` at keypoint ``kp``."""
+        """Record that keyframe ``kf`` sees landmark ``lm`` at keypoint ``kp`` (nothing if ``lm`` died meanwhile)."""
         with self.lock:
+            if not self.alive[lm]:  # culled by the backend after tracking matched it: its slot may be reused
+                return
             old = kf.landmark_ids[kp]
             if old >= 0 and old != lm:
                 self.observations[old].pop(kf.id, None)
@@ -102,8 +143,14 @@ class SlamMap:
             kp = self.observations[lm].pop(kf_id, None)
             if kp is not None and kf_id in self.keyframes:
                 self.keyframes[kf_id].landmark_ids[kp] = -1
-            if not self.observations[lm]:
-                self.alive[lm] = False
+            if not self.observations[lm] and self.alive[lm]:
+                self._kill(lm)
+
+    def _kill(self, lm: int) -> None:
+        """A landmark nobody sees any more dies; its slot waits in ``_free`` for a new landmark."""
+        self.alive[lm] = False
+        self.observations[lm] = {}  # a fresh dict: a popped one keeps its size
+        self._free.append(int(lm))
 
     def remove_landmark(self, lm: int) -> None:
         """Delete a landmark and its observations."""
@@ -112,7 +159,8 @@ class SlamMap:
                 if kf_id in self.keyframes:
                     self.keyframes[kf_id].landmark_ids[kp] = -1
             self.observations[lm] = {}
-            self.alive[lm] = False
+            if self.alive[lm]:
+                self._kill(lm)
 
     def merge_landmarks(self, keep: int, drop: int) -> None:
         """Fuse landmark ``drop`` into ``keep`` (same physical point found twice)."""
@@ -130,7 +178,7 @@ class SlamMap:
                 if kf_id in self.keyframes and self.keyframes[kf_id].landmark_ids[kp] == drop:
                     self.keyframes[kf_id].landmark_ids[kp] = -1
             self.observations[drop] = {}
-            self.alive[drop] = False
+            self._kill(drop)
 
     def alive_ids(self) -> np.ndarray:
         """Ids [L] of living landmarks."""
@@ -162,16 +210,66 @@ class SlamMap:
         return out + [k for k in earlier if k not in out]
 
     def landmarks_of(self, kf_ids: list[int]) -> np.ndarray:
-        """Sorted ids of living landmarks observed by any of the keyframes."""
+        """Ids of living landmarks observed by any of the keyframes, oldest first (matching breaks ties by this
+        order, so an established point wins over a new one; ids are not the creation order, slots are reused)."""
         with self.lock:
             ids = [self.keyframes[k].landmark_ids for k in kf_ids if k in self.keyframes]
             if not ids:
                 return np.zeros(0, dtype=np.int64)
             lm = np.unique(np.concatenate(ids))
             lm = lm[lm >= 0]
-            return lm[self.alive[lm]]
+            lm = lm[self.alive[lm]]
+            return lm[np.argsort(self.born[lm], kind="stable")]
 
-    def poses(self) -> dict[int, np.ndarray]:
-        """Copy of every keyframe pose (id -> T_wc)."""
+    def graph_poses(self) -> dict[int, np.ndarray]:
+        """Copy of the pose of every keyframe in the graph (id -> T_wc [4, 4]), retired ones left out."""
         with self.lock:
             return {k: kf.T_wc.copy() for k, kf in self.keyframes.items()}
+
+    def poses(self) -> dict[int, np.ndarray]:
+        """Pose of every keyframe ever made (id -> T_wc [4, 4]): the graph's, and retired ones through their parents."""
+        with self.lock:
+            out = self.graph_poses()
+            for k in sorted(self.retired):
+                out[k] = self.pose(k)
+            return out
+
+    def pose(self, kf_id: int) -> np.ndarray:
+        """T_wc [4, 4] of a keyframe in the graph or retired from it (KeyError for an id never made)."""
+        with self.lock:
+            living, T_living_kf = self.anchor(kf_id)
+            return self.keyframes[living].T_wc @ T_living_kf
+
+    def anchor(self, kf_id: int) -> tuple[int, np.ndarray]:
+        """(the keyframe in the graph that keyframe ``kf_id`` rides on, T_that_kf [4, 4]): itself and the identity
+        for a keyframe in the graph; KeyError for an id never made."""
+        with self.lock:
+            if kf_id in self.keyframes:
+                return int(kf_id), np.eye(4)
+            r = self.retired[int(kf_id)]
+            return r.parent, r.T_parent_kf.copy()
+
+    def living(self, kf_id: int) -> int:
+        """The keyframe in the graph that keyframe ``kf_id`` rides on (itself when it is in the graph)."""
+        return self.anchor(kf_id)[0]
+
+    def retire_keyframe(self, kf_id: int, parent: int) -> KeyFrame:
+        """Take keyframe ``kf_id`` out of the graph: its observations go (a landmark it alone saw dies), its pose rides
+        on ``parent`` (a keyframe in the graph) from now on; returns the removed keyframe."""
+        with self.lock:
+            if kf_id == parent or parent not in self.keyframes:
+                raise ValueError(f"keyframe {kf_id}: parent {parent} must be another keyframe in the graph")
+            kf = self.keyframes.pop(kf_id)
+            for kp in np.nonzero(kf.landmark_ids >= 0)[0]:
+                lm = int(kf.landmark_ids[kp])
+                self.observations[lm].pop(kf_id, None)
+                if not self.observations[lm] and self.alive[lm]:
+                    self._kill(lm)
+            for seen in self.plane_observations.values():
+                seen.pop(kf_id, None)
+            T_parent_kf = invert(self.keyframes[parent].T_wc) @ kf.T_wc
+            for r in self.retired.values():  # those that rode on it ride on its parent: every parent is in the graph
+                if r.parent == kf_id:
+                    r.parent, r.T_parent_kf = parent, T_parent_kf @ r.T_parent_kf
+            self.retired[kf_id] = RetiredKeyFrame(kf.id, kf.frame_index, kf.timestamp, parent, T_parent_kf)
+            return kf

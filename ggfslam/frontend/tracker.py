@@ -178,7 +178,7 @@ class OrbTracker:
                     if k not in local:
                         local.append(k)
             cand = self.map.landmarks_of(local)
-        cand = np.setdiff1d(cand, lm, assume_unique=True)
+        cand = cand[~np.isin(cand, lm)]  # keeps landmarks_of's order: oldest first
         taken = np.zeros(len(F), dtype=bool)
         taken[kp] = True
         lm2, kp2, seen = self._search(T, F, cand, self.cfg.match_radius, taken)
@@ -191,8 +191,7 @@ class OrbTracker:
         with self.map.lock:
             self.map.n_found[lm_all] += 1
         if self.ref_kf >= 0 and local:
-            best = local[0] if counts else self.ref_kf
-            self.ref_kf = best  # the keyframe sharing most points with this frame
+            self._set_reference(local[0] if counts else self.ref_kf)  # the keyframe sharing most points with it
         return T, lm_all, kp_all
 
     def _relocalize(self, F: Features):
@@ -203,11 +202,19 @@ class OrbTracker:
             if k not in candidates:
                 candidates.append(k)
         for k in candidates:
-            res = self._pnp(F, self.map.keyframes[k])
+            kf = self.map.keyframes.get(k)  # the backend may have culled it since
+            res = None if kf is None else self._pnp(F, kf)
             if res is not None:
-                self.ref_kf = k
+                self._set_reference(k)
                 return res
         return None
+
+    def _set_reference(self, kf_id: int) -> None:
+        """Make keyframe ``kf_id`` (or, culled meanwhile, the one it rides on) the reference keyframe, which the
+        backend does not cull while it is one."""
+        with self.map.lock:
+            self.ref_kf = self.map.living(kf_id)
+            self.map.tracking_ref = self.ref_kf
 
     # --- keyframes ------------------------------------------------------------------------------------
     def _dense_step(self, frame: Frame, guess: np.ndarray | None = None) -> np.ndarray | None:
@@ -240,7 +247,7 @@ class OrbTracker:
             if len(fresh):
                 Xw = F.points_cam[fresh] @ T[:3, :3].T + T[:3, 3]
                 self.map.add_landmarks(Xw, F.descriptors[fresh], kf, fresh)
-        self.ref_kf = kf.id
+        self._set_reference(kf.id)
         self.last_kf_frame = frame.index
         self.backend.insert_keyframe(kf, frame.depth)
         return kf
@@ -263,9 +270,9 @@ class OrbTracker:
         d_max = getattr(self.cfg, "keyframe_still_translation", 0.0)
         if d_max <= 0:
             return None
-        with self.map.lock:
-            ids = np.array(list(self.map.keyframes), np.int64)  # [K]
-            poses = np.stack([kf.T_wc for kf in self.map.keyframes.values()])  # [K, 4, 4]
+        every = self.map.poses()  # culled keyframes too: the mapper keeps their views
+        ids = np.array(list(every), np.int64)  # [K]
+        poses = np.stack(list(every.values()))  # [K, 4, 4]
         dist = np.linalg.norm(poses[:, :3, 3] - T[:3, 3], axis=1)  # [K]
         # the relative rotation's angle from its trace: cos = (tr(R_kf^T R) - 1) / 2
         cos = (np.einsum("kij,ij->k", poses[:, :3, :3], T[:3, :3]) - 1.0) / 2.0  # [K]
@@ -313,7 +320,9 @@ class OrbTracker:
         # bundle adjustment or a loop closure may have moved the reference keyframe since the last frame
         ref, rel = getattr(self, "tracked_rel", None) or (self.records[-1].ref_kf, self.records[-1].T_ref_cur)
         self.tracked_rel = None
-        self.last_T = self.map.keyframes[ref].T_wc @ rel
+        self.last_T = self.map.pose(ref) @ rel
+        if self.ref_kf >= 0 and self.ref_kf not in self.map.keyframes:  # a checkpoint's tracker from before culling
+            self._set_reference(self.ref_kf)
         res = None
         dense_T, res = None, None
         empty = np.zeros(0, np.int64)
@@ -408,7 +417,7 @@ class OrbTracker:
         if (r.state != TrackingState.OK or r.index != self.last_frame.index or r.index - self.last_kf_frame < n
                 or r.index == self.rested_frame):
             return None
-        T = self.map.keyframes[r.ref_kf].T_wc @ r.T_ref_cur  # [4, 4] as the backend holds it now
+        T = self.map.pose(r.ref_kf) @ r.T_ref_cur  # [4, 4] as the backend holds it now
         self.rests_at = self.known_view(T)
         if self.rests_at is not None:  # the camera came to rest at a keyframe's view: nothing new to map
             self.rested_frame = r.index  # answered once: its frames' steps are not handed out twice
@@ -450,5 +459,8 @@ class OrbTracker:
 
     def keyframe_trajectory(self) -> tuple[np.ndarray, np.ndarray]:
         """Timestamps [K] and camera-to-world poses [K, 4, 4] of the keyframes."""
-        kfs = sorted(self.map.keyframes.values(), key=lambda k: k.id)
-        return np.array([k.timestamp for k in kfs]), np.stack([k.T_wc for k in kfs])
+        with self.map.lock:
+            poses = self.map.poses()
+            stamps = {k: kf.timestamp for k, kf in [*self.map.keyframes.items(), *self.map.retired.items()]}
+        ids = sorted(poses)
+        return np.array([stamps[k] for k in ids]), np.stack([poses[k] for k in ids])
