@@ -358,10 +358,10 @@ class BackendConfig(_Section):
     and the loop detector (its features, observations and vectors are freed), while its pose rides on a nearby
     keyframe sharing many points with it, so the frames tracked against it and the mapper's view of it keep
     following every correction. It bounds what a camera that keeps revisiting a place adds to memory and to bundle
-    adjustment (tracking the procedural room's 2000 frames: 51 of 201 keyframes retired, RSS growth from frame 500
-    on 47 -> 37 MiB), at a small cost in accuracy on rendered sequences (ATE 0.191 -> 0.197 cm there, +3% over four
-    draws of a lap of the room) and none beyond the draws' spread on the real ones (docs/MEASUREMENTS.md, keyframe
-    culling). Off by default; ``ggfslam live`` turns it on."""
+    adjustment (tracking the procedural room's 2000 frames: 52 of 201 keyframes retired, RSS growth from frame 500
+    on 47 -> 37 MiB, local BA 244 -> 213 ms a keyframe), at a cost in accuracy on rendered sequences (ATE 0.190 ->
+    0.208 cm there, 3-9% on a lap of the room: a retired keyframe's pose is no longer refined) and none beyond the
+    draws' spread on the real ones (docs/MEASUREMENTS.md, keyframe culling). Off by default."""
     culling_redundancy: float = 0.9
     """A keyframe is retired when more than this share of its points are each seen by ``culling_observers`` other
     keyframes at the same or a finer scale (ORB-SLAM: 0.9)."""
