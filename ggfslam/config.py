@@ -357,7 +357,7 @@ class BackendConfig(_Section):
     new keyframe's covisible keyframes): a retired keyframe leaves the factor graph, the place-recognition database
     and the loop detector (its features, observations and vectors are freed), while its pose rides on a nearby
     keyframe sharing many points with it, so the frames tracked against it and the mapper's view of it keep
-    following every correction. It bounds what a camera that keeps revisiting a place adds to memory and to bundle
+    following every correction. It trims what a camera that keeps revisiting a place adds to memory and to bundle
     adjustment (tracking the procedural room's 2000 frames: 52 of 201 keyframes retired, RSS growth from frame 500
     on 47 -> 37 MiB, local BA 244 -> 213 ms a keyframe), at a cost in accuracy on rendered sequences (ATE 0.190 ->
     0.208 cm there, 3-9% on a lap of the room: a retired keyframe's pose is no longer refined) and none beyond the
