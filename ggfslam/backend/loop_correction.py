@@ -83,7 +83,7 @@ def close_loop(smap: SlamMap, loop: LoopResult, solve=optimize_pose_graph) -> di
         # a point made by a retired keyframe moves with the keyframe that keyframe rides on
         refs = smap.created_by[ids]
         for k in np.unique(refs).tolist():
-            if k >= 0 and k not in smap.keyframes and k in smap.retired:
+            if k in smap.retired:
                 refs[refs == k] = smap.living(k)
         smap.positions[ids] = correct_points(smap.positions[ids], refs, old, new)
         q, m = smap.keyframes[loop.query_id], smap.keyframes[loop.match_id]

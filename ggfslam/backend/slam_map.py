@@ -177,7 +177,6 @@ class SlamMap:
             for kf_id, kp in self.observations[drop].items():
                 if kf_id in self.keyframes and self.keyframes[kf_id].landmark_ids[kp] == drop:
                     self.keyframes[kf_id].landmark_ids[kp] = -1
-            self.observations[drop] = {}
             self._kill(drop)
 
     def alive_ids(self) -> np.ndarray:
@@ -260,11 +259,8 @@ class SlamMap:
             if kf_id == parent or parent not in self.keyframes:
                 raise ValueError(f"keyframe {kf_id}: parent {parent} must be another keyframe in the graph")
             kf = self.keyframes.pop(kf_id)
-            for kp in np.nonzero(kf.landmark_ids >= 0)[0]:
-                lm = int(kf.landmark_ids[kp])
-                self.observations[lm].pop(kf_id, None)
-                if not self.observations[lm] and self.alive[lm]:
-                    self._kill(lm)
+            for lm in kf.landmark_ids[kf.landmark_ids >= 0].tolist():
+                self.remove_observation(lm, kf_id)
             for seen in self.plane_observations.values():
                 seen.pop(kf_id, None)
             T_parent_kf = invert(self.keyframes[parent].T_wc) @ kf.T_wc

@@ -321,8 +321,6 @@ class OrbTracker:
         ref, rel = getattr(self, "tracked_rel", None) or (self.records[-1].ref_kf, self.records[-1].T_ref_cur)
         self.tracked_rel = None
         self.last_T = self.map.pose(ref) @ rel
-        if self.ref_kf >= 0 and self.ref_kf not in self.map.keyframes:  # a checkpoint's tracker from before culling
-            self._set_reference(self.ref_kf)
         res = None
         dense_T, res = None, None
         empty = np.zeros(0, np.int64)
