@@ -41,9 +41,9 @@ def _run_variant(raw: dict, out_dir: str) -> dict:
     """One run (in a worker process) plus the planarity of its anchors against a synthetic scene's mesh."""
     row = _run_one(raw, out_dir)
     os.dup2(2, 1)
-    from ggfslam import slam
+    from ggfslam.saved_run import load_mapper
 
-    cfg, mapper, _ = slam.load_mapper(out_dir)
+    cfg, mapper, _ = load_mapper(out_dir)
     row["ggf"] = mapper.stats().get("ggf")
     row.update(_mesh_figures(cfg, mapper, Path(out_dir)))
     if mapper.ggf is not None and cfg.dataset.kind == "synthetic" and cfg.dataset.synthetic.source == "procedural":

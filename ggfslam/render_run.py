@@ -9,6 +9,7 @@ from ggfslam.data.imageio import write_depth, write_rgb
 from ggfslam.data.trajectory_io import read_tum_trajectory
 from ggfslam.errors import ConfigError, RunDirError
 from ggfslam.rundir import TRAJECTORY_FILE
+from ggfslam.saved_run import load_mapper, run_camera
 
 
 def _frame_selection(spec: str, n: int, kf_frames: list[int]) -> np.ndarray:
@@ -76,8 +77,6 @@ def render_run(run_dir: str | Path, frames: str = "keyframes", path: str | Path 
         def render(T, _exposure_kf):
             return baked.render(T, intr)
     else:
-        from ggfslam.slam import load_mapper
-
         _, mapper, ckpt = load_mapper(run_dir)
         kf_frames = dict(ckpt["kf_frames"])
 
@@ -110,17 +109,3 @@ def render_run(run_dir: str | Path, frames: str = "keyframes", path: str | Path 
         write_rgb(folder / f"{nm}_rgb.png", res.color.clamp(0, 1).numpy())
         write_depth(folder / f"{nm}_depth.png", res.depth.numpy(), 1000.0)
     return {"count": len(indices), "folder": str(folder)}
-
-
-def run_camera(run_dir: Path):
-    """The pinhole camera a run's frames were (from its run.json)."""
-    from ggfslam.data.types import Camera
-    from ggfslam.rundir import RUN_INFO_FILE, read_json
-
-    cam = dict(read_json(run_dir / RUN_INFO_FILE)["camera"])
-    if cam.get("distortion"):
-        # runs now record the camera of the undistorted frames; this one read distorted images as pinhole ones
-        raise RunDirError(f"{run_dir / RUN_INFO_FILE}: camera has lens distortion {cam['distortion']}: the run was made "
-                          "before ggfslam undistorted frames (2026-12-04), so its map and poses do not match the frames "
-                          "read now; run the sequence again")
-    return Camera(**{**cam, "distortion": ()})

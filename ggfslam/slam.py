@@ -44,6 +44,7 @@ from ggfslam.rundir import (
     require_run_dir,
     write_json,
 )
+from ggfslam.saved_run import load_mapper
 
 log = logging.getLogger("ggfslam")
 RSS_EVERY = 100  # frames between memory samples (metrics.json system.rss_mb_by_frame)
@@ -704,29 +705,6 @@ def _trajectory_metrics(est_stamps, est_poses, gt_stamps, gt_poses, config: Conf
     except ValueError as e:
         log.warning("trajectory not scored: %s", e)
         return {"ate_rmse_cm": float("nan"), "error": str(e)}
-
-
-def load_mapper(run_dir: str | Path):
-    """The trained map of a finished (or checkpointed) run: (config, mapper, checkpoint dict)."""
-    from ggfslam.checkpoint import load_checkpoint
-    from ggfslam.mapping.mapper import Mapper
-    from ggfslam.render.types import RenderSettings
-
-    run_dir = require_run_dir(run_dir)
-    config = load_config(run_dir / CONFIG_FILE)
-    if not config.mapping.enabled:
-        raise RunDirError(f"{run_dir}: the run was made with mapping.enabled: false, so it has no Gaussian map")
-    ckpt = load_checkpoint(run_dir)
-    if ckpt["mapper"] is None:
-        raise RunDirError(f"{run_dir}: the checkpoint holds no Gaussian map")
-    from ggfslam.render_run import run_camera
-
-    camera = run_camera(run_dir)
-    poses = ckpt["keyframe_poses"]
-    mapper = Mapper(config.mapping, camera, RenderSettings(backend=config.render.backend), lambda: dict(poses),
-                    run_dir / KEYFRAME_IMAGES_DIR, config.runtime.seed, ggf=config.ggf)
-    mapper.load_state(ckpt["mapper"])
-    return config, mapper, ckpt
 
 
 def frames_of_stamps(frame_stamps: np.ndarray, stamps: np.ndarray, path: Path) -> np.ndarray:

@@ -19,6 +19,7 @@ from ggfslam.mapping.losses import depth_loss, normal_loss, opacity_entropy, pho
 from ggfslam.mapping.mapper import Mapper
 from ggfslam.mapping.worker import MappingWorker
 from ggfslam.render.types import RenderSettings
+from ggfslam.saved_run import load_mapper
 
 
 def _mapper(ds, poses, **kw):
@@ -301,7 +302,7 @@ def test_the_map_covers_the_last_frame(tmp_path):
                         "mesh": False, "train_width": 160, "eval_width": 160}}, "t")
         out = tmp_path / f"after{after}"
         metrics = slam.run(cfg, out, progress=False)
-        _, mapper, _ = slam.load_mapper(out)
+        _, mapper, _ = load_mapper(out)
         f = sources.open_dataset_from_config(cfg.dataset)[35]
         render = mapper.render(pose_from_tum(np.loadtxt(out / "trajectory.txt")[-1, 1:]))
         _, depth = resize_rgbd(f.rgb, f.depth, mapper.intr)
@@ -620,8 +621,8 @@ def test_resume_after_an_interruption_gives_the_same_run(tmp_path, monkeypatch):
     assert resumed["rendering"]["psnr"] == full["rendering"]["psnr"]
     assert resumed["mapping"]["anchors"] == full["mapping"]["anchors"]
     # and the saved maps render the same image
-    _, ma, _ = slam.load_mapper(tmp_path / "full")
-    _, mb, _ = slam.load_mapper(tmp_path / "cut")
+    _, ma, _ = load_mapper(tmp_path / "full")
+    _, mb, _ = load_mapper(tmp_path / "cut")
     T = np.loadtxt(tmp_path / "full" / "keyframes.txt", ndmin=2)[1]
     from ggfslam.geometry.se3 import pose_from_tum
 
@@ -639,7 +640,7 @@ def test_concurrent_run_resumes_with_every_keyframe_seeded_once(tmp_path, monkey
     monkeypatch.setenv("GGFSLAM_CACHE", str(tmp_path / "cache"))
     out = slam.run(cfg, tmp_path / "cut", progress=False, resume=True)
     assert json.loads((tmp_path / "cut" / "run.json").read_text())["status"] == "finished"
-    _, m, _ = slam.load_mapper(tmp_path / "cut")
+    _, m, _ = load_mapper(tmp_path / "cut")
     n_kf = len(np.loadtxt(tmp_path / "cut" / "keyframes.txt", ndmin=2))
     assert m.store.ids() == sorted(m.anchor_poses) == list(range(n_kf))
     # every keyframe got its steps and the final refinement ran (idle training may add more)

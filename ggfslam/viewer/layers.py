@@ -231,7 +231,7 @@ def keyframe_images(run_dir: Path) -> dict[int, Path]:
 def load_keyframes(run_dir: Path, graph: dict | None) -> Keyframes:
     """Keyframe poses (graph.json's, after the last BA; else keyframes.txt) and their images as thumbnails."""
     from ggfslam.data.trajectory_io import read_tum_trajectory
-    from ggfslam.render_run import run_camera
+    from ggfslam.saved_run import run_camera
 
     cam = run_camera(run_dir)
     files = keyframe_images(run_dir)
