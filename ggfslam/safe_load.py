@@ -70,6 +70,7 @@ class RestrictedUnpickler(pickle._Unpickler):
         self.allowed = allowed
 
     def find_class(self, module: str, name: str):
+        """The allowed class or function (module, name); anything else is refused."""
         try:
             return self.allowed[(module, name)]
         except KeyError:

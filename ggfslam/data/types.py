@@ -67,8 +67,10 @@ class Frame:
 
     @property
     def height(self) -> int:
+        """Image rows."""
         return int(self.rgb.shape[0])
 
     @property
     def width(self) -> int:
+        """Image columns."""
         return int(self.rgb.shape[1])

@@ -151,6 +151,7 @@ class LPIPS:
 
     @property
     def available(self) -> bool:
+        """Whether the LPIPS network could be loaded."""
         return self.net is not None
 
     def __call__(self, img: np.ndarray, ref: np.ndarray) -> float:
@@ -178,6 +179,7 @@ class PSNR(Metric):
     name, unit = "PSNR", "dB"
 
     def process_data(self, data) -> None:
+        """Add the PSNR of one (image, reference) pair."""
         self.values.append(psnr(*data))
 
 
@@ -187,6 +189,7 @@ class SSIM(Metric):
     name, unit = "SSIM", ""
 
     def process_data(self, data) -> None:
+        """Add the SSIM of one (image, reference) pair."""
         self.values.append(ssim_np(*data))
 
 
@@ -196,4 +199,5 @@ class DepthL1(Metric):
     name, unit = "Depth L1", "cm"
 
     def process_data(self, data) -> None:
+        """Add the depth L1 (cm) of one (image, reference) pair."""
         self.values.append(depth_l1_cm(*data))

@@ -120,6 +120,7 @@ class AnchorMap(nn.Module):
     # --- size and occupancy ------------------------------------------------------------------------
     @property
     def n_anchors(self) -> int:
+        """Anchors in the map."""
         return int(self.anchors.shape[0])
 
     def _rebuild_keys(self) -> None:

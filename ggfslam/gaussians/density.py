@@ -63,6 +63,7 @@ class DensityStats:
 
     @classmethod
     def empty(cls, n_anchors: int, k: int) -> DensityStats:
+        """Zero statistics for n_anchors anchors of k children each."""
         return cls(torch.zeros(n_anchors * k), torch.zeros(n_anchors * k), torch.zeros(n_anchors),
                    torch.zeros(n_anchors))
 

@@ -37,4 +37,5 @@ class ResidualField(nn.Module):
             self.net[-1].bias.zero_()
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
+        """The residual logit [M] of anchors with features [M, F]."""
         return self.net(features)[:, 0]

@@ -83,6 +83,7 @@ class KeyframeStore:
         return self._frames[kf_id]
 
     def path(self, kf_id: int) -> Path:
+        """The file of keyframe kf_id's images."""
         return self.dir / f"kf_{kf_id:06d}.npz"
 
     def add(self, kf_id: int, frame_index: int, rgb: np.ndarray, depth: np.ndarray) -> KeyframeImages:

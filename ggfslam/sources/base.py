@@ -45,6 +45,8 @@ class Arrival:
 
 @dataclass
 class DeliveryStats:
+    """What a live source delivered: frames received, dropped and how late."""
+
     received: int = 0  # frames the driver delivered
     dropped: list[int] = field(default_factory=list)  # indices pushed out of the queue unseen
     late_ms: list[float] = field(default_factory=list)  # delivery minus due time, per frame

@@ -38,6 +38,8 @@ class Splats:
 
 @dataclass
 class Mesh:
+    """A run's mesh (mesh.ply) as the viewer draws it."""
+
     vertices: np.ndarray  # [V, 3]
     faces: np.ndarray  # [F, 3] int
     colors: np.ndarray | None  # [V, 3] in [0, 1]
@@ -56,6 +58,8 @@ class Trajectories:
 
 @dataclass
 class Keyframes:
+    """A run's keyframes: ids, frame indices and poses."""
+
     ids: np.ndarray  # [K]
     frame_index: np.ndarray  # [K]
     poses: np.ndarray  # [K, 4, 4] T_wc

@@ -164,6 +164,7 @@ class RunScene:
         return float(np.clip(0.05 * max(extent, 0.5), 0.03, 0.5))
 
     def draw_splats(self, s: Splats) -> None:
+        """Show the map's Gaussians (coloured by P_2D when that layer is on)."""
         planar = self._visible("colour by P_2D") and s.planar_colors is not None
         h = self.server.scene.add_gaussian_splats(
             "/map/gaussians", centers=s.means, covariances=s.covariances,
@@ -171,6 +172,7 @@ class RunScene:
         self._set("Gaussian map", [h])
 
     def draw_mesh(self, m: Mesh) -> None:
+        """Show the mesh (per-vertex colours through trimesh)."""
         if m.colors is not None:
             # viser's simple mesh has one colour; per-vertex colours go through trimesh
             import trimesh
@@ -182,6 +184,7 @@ class RunScene:
         self._set("mesh", [h])
 
     def draw_trajectories(self, t: Trajectories) -> None:
+        """Show the estimated and ground-truth trajectories."""
         sc = self.server.scene
         seg = polyline_segments(t.est[:, :3, 3])  # [N-1, 2, 3]
         if len(seg):
@@ -217,6 +220,7 @@ class RunScene:
             self._set("keyframes", list(self._frustums.values()))
 
     def draw_graph(self, g: Graph) -> None:
+        """Show the factor graph (keyframes, landmarks, factors) and make its elements pickable."""
         sc = self.server.scene
         with self._lock:
             self.pickables.clear()
@@ -337,6 +341,7 @@ class RunScene:
         self.frame_caption.content = text
 
     def write_summary(self) -> None:
+        """Write the side panel's summary of the run and its layers."""
         L = self.layers
         lines = [f"**{L.run_dir.name}**"]
         if L.splats is not None:
