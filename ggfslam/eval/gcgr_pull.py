@@ -120,9 +120,8 @@ def keyframe_pulls(run_dir: str | Path, overrides: list[str] | None = None, star
     rows and a summary per start."""
     from ggfslam.backend.gcgr_source import GCGRSource
     from ggfslam.config import load_config
-    from ggfslam.saved_run import run_camera
     from ggfslam.rundir import CONFIG_FILE
-    from ggfslam.saved_run import load_mapper
+    from ggfslam.saved_run import load_mapper, run_camera
 
     unknown = set(starts) - set(STARTS)
     if unknown:

@@ -32,12 +32,11 @@ class FrameViews:
 
     def _open_map(self):
         from ggfslam.mapping.keyframe_store import scaled_intrinsics
-        from ggfslam.saved_run import run_camera
+        from ggfslam.saved_run import load_mapper, run_camera
 
         intr = scaled_intrinsics(run_camera(self.run_dir), self.width)
         try:
             from ggfslam.eval.rendering import nearest_keyframes
-            from ggfslam.saved_run import load_mapper
 
             _, mapper, ckpt = load_mapper(self.run_dir)
             kf_frames = dict(ckpt["kf_frames"])
