@@ -242,8 +242,8 @@ def test_a_run_that_read_distorted_images_as_pinhole_is_refused(tmp_path):
     import json
 
     from ggfslam.errors import RunDirError
-    from ggfslam.saved_run import run_camera
     from ggfslam.rundir import RUN_INFO_FILE
+    from ggfslam.saved_run import run_camera
 
     (tmp_path / RUN_INFO_FILE).write_text(json.dumps({"camera": FR1.to_dict()}))
     with pytest.raises(RunDirError, match="lens distortion"):

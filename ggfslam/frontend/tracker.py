@@ -9,8 +9,8 @@ to its reference keyframe, so backend corrections (BA, loop closure) move the wh
 from __future__ import annotations
 
 from collections import Counter
-from itertools import chain
 from dataclasses import dataclass
+from itertools import chain
 
 import numpy as np
 
