@@ -159,8 +159,7 @@ class SlamMap:
             for kf_id, kp in self.observations[lm].items():
                 if kf_id in self.keyframes:
                     self.keyframes[kf_id].landmark_ids[kp] = -1
-            self.observations[lm] = {}
-            if self.alive[lm]:
+            if self.alive[lm]:  # a dead landmark's observations are already empty (_kill)
                 self._kill(lm)
 
     def merge_landmarks(self, keep: int, drop: int) -> None:
