@@ -109,6 +109,7 @@ def run(
     cfg = folder_config(config, set_) if config.is_dir() else load_config(config, set_)
     from ggfslam import slam
 
+    _note_compile(cfg)
     with _live_viewer(view, host, port) as viewer:
         metrics = slam.run(cfg, out, overwrite=overwrite, progress=not no_progress, resume=resume, observer=viewer)
         _print_result(metrics, out, f"{cfg.name}: {metrics['sequence']['dataset']}")
@@ -193,6 +194,7 @@ def live(
            else config_from_dict(apply_overrides({"name": "live"}, LIVE_DEFAULTS + pre + set_), "live"))
     from ggfslam import slam
 
+    _note_compile(cfg)
     with _live_viewer(view, host, port) as viewer:
         metrics = slam.run(cfg, out, overwrite=overwrite, progress=not no_progress, observer=viewer,
                            live=make_source(cfg))
@@ -219,10 +221,38 @@ def demo(
     data["dataset"]["synthetic"]["n_frames"] = frames
     cfg = config_from_dict(apply_overrides(data, set_), "demo")
     out = out or Path("runs") / f"demo-{datetime.now().strftime('%Y%m%d-%H%M%S')}"
+    _note_compile(cfg)
     with _live_viewer(view, host, port) as viewer:
         console.print("rendering the synthetic sequence (cached after the first time) ...")
         metrics = slam.run(cfg, out, observer=viewer)
         _print_result(metrics, out, "ggfslam demo: synthetic room")
+
+
+def _note_compile(cfg) -> None:
+    """Say so when a run starts by compiling the kernels (a fresh install): a minute would pass in silence."""
+    from ggfslam.kernel_warmup import kernels_compiled
+
+    if cfg.mapping.enabled and not kernels_compiled():
+        console.print("compiling the numba kernels on every core (once per install and machine) ...")
+
+
+@app.command("compile-kernels")
+def compile_kernels_cmd(jobs: Optional[int] = typer.Option(None, help="Processes (default: one per core).")):
+    """Compile every numba kernel into the cache now, on every core (a run does this itself when it needs to):
+    for a machine image or cluster nodes prepared before their first run."""
+    from ggfslam.kernel_warmup import compile_kernels, kernels_compiled
+
+    if kernels_compiled():
+        console.print("the kernels are compiled already")
+        return
+    t0 = time.perf_counter()
+    job = compile_kernels(jobs, background=True)
+    ok = job.wait() if job is not None else kernels_compiled()  # None: compiled by another process, or jobs 0
+    for part, (seconds, error) in ({} if job is None else job.results).items():
+        console.print(f"  {part}: {seconds:.0f} s" + (f", failed: {error}" if error else ""), highlight=False)
+    if not ok:
+        raise typer.Exit(1)
+    console.print(f"kernels compiled in {time.perf_counter() - t0:.0f} s", highlight=False)
 
 
 @app.command("eval")

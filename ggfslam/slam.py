@@ -24,6 +24,7 @@ from ggfslam.data.trajectory_io import read_tum_trajectory, write_tum_trajectory
 from ggfslam.errors import DatasetError, GGFSlamError, RunDirError
 from ggfslam.eval.perf import StageTimer, current_rss_mb, peak_rss_mb
 from ggfslam.eval.trajectory import trajectory_metrics
+from ggfslam.kernel_warmup import compile_kernels, load_kernels
 from ggfslam.render.cpu import release_free_memory
 from ggfslam.rundir import (
     CONFIG_FILE,
@@ -229,17 +230,26 @@ def run(config: Config, out_dir: str | Path, overwrite: bool = False, progress: 
     if live is not None and resume:
         raise RunDirError(f"{out_dir}: a live run cannot be resumed (its input is gone); start a new one")
     source = live
-    # bad input (a dataset, a missing camera) fails before the run folder is touched
-    if source is None:
-        dataset = open_dataset_from_config(config.dataset)
-    else:
-        dataset, config = source.open(config, Path(out_dir))
+    # a fresh install compiles the mapping kernels on every core while the input opens (kernel_warmup.py)
+    compiling = compile_kernels(background=True) if config.mapping.enabled else None
     try:
-        run_dir, ckpt = _open_run_dir(config, out_dir, overwrite, resume)
+        # bad input (a dataset, a missing camera) fails before the run folder is touched
+        if source is None:
+            dataset = open_dataset_from_config(config.dataset)
+        else:
+            dataset, config = source.open(config, Path(out_dir))
+        try:
+            run_dir, ckpt = _open_run_dir(config, out_dir, overwrite, resume)
+        except BaseException:
+            if source is not None:
+                source.close()
+            raise
     except BaseException:
-        if source is not None:
-            source.close()
+        if compiling is not None:
+            compiling.cancel()
         raise
+    if compiling is not None:
+        compiling.wait()
     handler = _attach_log(run_dir)
     st = _RunState(len(dataset))
     if source is not None:
@@ -351,37 +361,11 @@ def _restore_or_start(config: Config, dataset: RGBDDataset, run_dir: Path, ckpt:
 
 
 def _warm_up_kernels(config: Config, camera, mapping: bool) -> None:
-    """Load the compiled kernels of tracking (projection matching, pose refinement) and, with ``mapping``, of the
-    mapper (seeding, training steps, their losses, on a throwaway keyframe) before a live input starts: loading or,
-    on a fresh install, compiling them holds the GIL for seconds (a recording of 4 s at 8 Hz lost 22 of its first 23
-    frames while the first keyframe's seeding loaded the mapper's)."""
-    import tempfile
-
-    from ggfslam.frontend.matching import match_projected
-    from ggfslam.frontend.pose_refine import refine_pose
-
+    """Load the compiled kernels of tracking and, with ``mapping``, of the mapper before a live input starts: loading
+    or, on a fresh install, compiling them holds the GIL for seconds (a recording of 4 s at 8 Hz lost 22 of its
+    first 23 frames while the first keyframe's seeding loaded the mapper's)."""
     t0 = time.perf_counter()
-    rng = np.random.default_rng(0)
-    pts = rng.uniform([-1, -1, 2], [1, 1, 3], (16, 3))  # [16, 3] in front of the camera
-    uv = np.column_stack([camera.fx * pts[:, 0] / pts[:, 2] + camera.cx, camera.fy * pts[:, 1] / pts[:, 2] + camera.cy])
-    desc = rng.integers(0, 256, (16, 32), dtype=np.uint8)
-    level = np.zeros(16, np.int64)
-    match_projected(uv, desc, level, uv, desc, level, 5.0, np.ones(1), 50, 0.9)
-    refine_pose(np.eye(4), pts, uv, pts[:, 2], np.ones(16), camera, config.tracking.virtual_baseline)
-    if mapping:
-        from ggfslam.mapping.mapper import Mapper
-        from ggfslam.render.types import RenderSettings
-
-        h, w = camera.height, camera.width
-        rgb = rng.random((h, w, 3), dtype=np.float32)  # [H, W, 3]
-        depth = np.full((h, w), 2.0, np.float32) + np.linspace(0, 0.5, w, dtype=np.float32)  # [H, W] a tilted wall
-        with tempfile.TemporaryDirectory(prefix="ggfslam-warmup-") as tmp:
-            pose = np.eye(4)
-            m = Mapper(config.mapping, camera, RenderSettings(backend=config.render.backend), lambda: {0: pose}, tmp,
-                       config.runtime.seed, ggf=config.ggf)
-            m.store.add(0, 0, rgb, depth)
-            m.seed_keyframe(0)
-            m.train(2, focus=0)
+    load_kernels(config, camera, mapping)
     log.info("kernels loaded in %.1f s, before the input starts", time.perf_counter() - t0)
 
 

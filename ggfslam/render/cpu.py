@@ -97,6 +97,74 @@ def _np32(t: torch.Tensor) -> np.ndarray:
     return t.detach().to(torch.float32).contiguous().numpy()
 
 
+def _image_buffers(W: int, H: int, Kp: int, ntiles: int) -> tuple[np.ndarray, ...]:
+    """``raster_forward``'s outputs: colour [H, W, 3], raw depth, extras [H, W, Kp], depth, final transmittance
+    (float32), last contributor (int64), each tile's backward cost [ntiles] (float64)."""
+    return (np.empty((H, W, 3), np.float32), np.empty((H, W), np.float32), np.empty((H, W, Kp), np.float32),
+            np.empty((H, W), np.float32), np.empty((H, W), np.float32), np.empty((H, W), np.int64),
+            np.empty(ntiles, np.float64))
+
+
+def _gaussian_gradients(n: int, Kp: int, n_visible: int) -> tuple[np.ndarray, ...]:
+    """``project_backward``'s outputs for n Gaussians: gradients of means, quaternions, scales, opacities, colours,
+    extras and means2d (float32; it writes every row) and the pose gradient's partial sums per chunk of visible
+    Gaussians [chunks, 12] (float64, zeroed)."""
+    nchunks = max(1, (n_visible + kc.SOA_CHUNK - 1) // kc.SOA_CHUNK)
+    return (np.empty((n, 3), np.float32), np.empty((n, 4), np.float32), np.empty((n, 3), np.float32),
+            np.empty(n, np.float32), np.empty((n, 3), np.float32), np.empty((n, Kp), np.float32),
+            np.empty((n, 2), np.float32), np.zeros((nchunks, 12), np.float64))
+
+
+KERNEL_STAGES = ("composite_backward", "composite_forward", "projection")
+"""The rasterizer's kernels in three groups of similar compile time (2026-12-07, fresh cache: the compositing's
+backward 36 s, its forward 27 s, projection + binning + the projection's backward 26 s)."""
+
+
+def compile_kernels(stage: str) -> None:
+    """Compile (or load from numba's cache) one group of ``KERNEL_STAGES`` with arguments of the types a render
+    passes, running it on no Gaussians (or, for ``projection``, a few): each group compiles without the others, so
+    processes can compile a fresh install's kernels side by side (``ggfslam/kernel_warmup.py``)."""
+    W = H = kc.TILE  # one tile
+    Kp = PADDED_EXTRAS
+    C = 4 + Kp
+    nworkers = max(1, numba.get_num_threads())
+    bg = np.zeros(C, np.float64)
+    srec, sfeat = np.empty((0, kc.REC), np.float32), np.empty((0, C), np.float32)
+    pidx, tile_start, order = np.empty(0, np.int32), np.zeros(2, np.int64), np.zeros(1, np.int64)
+    color, depth_raw, ext, depth, tfinal, last, work_bwd = _image_buffers(W, H, Kp, 1)
+    if stage == "composite_forward":
+        kc.raster_forward(srec, sfeat, pidx, tile_start, order, bg, W, H, 0.5, color, depth_raw, ext, depth, tfinal,
+                          last, work_bwd, nworkers)
+    elif stage == "composite_backward":
+        tfinal[:] = 1.0
+        last[:] = 0
+        g_img = np.zeros((H, W, 3), np.float32), np.zeros((H, W), np.float32), np.zeros((H, W, Kp), np.float32)
+        kc.raster_backward(srec, sfeat, pidx, tile_start, order, bg, W, H, 0.5, g_img[0], g_img[1], g_img[2],
+                           g_img[1], g_img[1], depth_raw, tfinal, last, np.empty((0, kc.N_GEO + C), np.float32),
+                           nworkers)
+    elif stage == "projection":
+        rng = np.random.default_rng(0)
+        n = 8
+        means = np.column_stack([rng.uniform(-0.2, 0.2, (n, 2)), rng.uniform(1.0, 2.0, n)]).astype(np.float32)
+        quats = np.tile(np.float32([1, 0, 0, 0]), (n, 1))
+        scales = np.full((n, 3), 0.05, np.float32)
+        opac = np.full(n, 0.8, np.float32)
+        colors, extras = np.full((n, 3), 0.5, np.float32), np.zeros((n, Kp), np.float32)
+        R, t = np.eye(3), np.zeros(3)
+        rec, radii, valid = np.empty((n, kc.REC), np.float32), np.empty(n, np.int32), np.empty(n, np.bool_)
+        f = float(W)
+        kc.project_forward(means, quats, scales, opac, R, t, f, f, W / 2, H / 2, W, H, 0.01, 100.0, 0.3, rec, radii,
+                           valid, nworkers)
+        vis, tile_start, pidx, srec, sfeat, pair_start, slot_pair, tile_cost = kc.bin_tiles(valid, rec, colors,
+                                                                                            extras, W, H, nworkers)
+        kc.tile_order(tile_cost)
+        pg = np.zeros((pidx.shape[0], kc.N_GEO + C), np.float32)
+        kc.project_backward(means, quats, scales, R, t, f, f, W / 2, H / 2, W, H, 0.3, vis, pair_start, slot_pair,
+                            pg, *_gaussian_gradients(n, Kp, vis.shape[0]), nworkers)
+    else:
+        raise ValueError(f"compile_kernels: stage must be one of {', '.join(KERNEL_STAGES)}, got {stage!r}")
+
+
 class _RasterizeCPU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, colors, extras, R_cw, t_cw, probe, background,
@@ -123,13 +191,7 @@ class _RasterizeCPU(torch.autograd.Function):
                                                                                             W, H, nworkers)
         bg = np.zeros(C, np.float64)
         bg[:3] = background.detach().to(torch.float64).numpy()
-        color = np.empty((H, W, 3), np.float32)
-        depth_raw = np.empty((H, W), np.float32)
-        ext = np.empty((H, W, Kp), np.float32)
-        depth = np.empty((H, W), np.float32)
-        tfinal = np.empty((H, W), np.float32)
-        last = np.empty((H, W), np.int64)
-        work_bwd = np.empty(tile_cost.shape[0], np.float64)
+        color, depth_raw, ext, depth, tfinal, last, work_bwd = _image_buffers(W, H, Kp, tile_cost.shape[0])
         thr = float(settings.depth_min_alpha)
         kc.raster_forward(srec, sfeat, pidx, tile_start, kc.tile_order(tile_cost), bg, W, H, thr, color, depth_raw,
                           ext, depth, tfinal, last, work_bwd, nworkers)
@@ -168,16 +230,8 @@ class _RasterizeCPU(torch.autograd.Function):
         nworkers = max(1, numba.get_num_threads())
         kc.raster_backward(srec, sfeat, pidx, tile_start, kc.tile_order(work_bwd), bg, W, H,
                            float(settings.depth_min_alpha), gc, gz, ge, gd, ga, depth_raw, tfinal, last, pg, nworkers)
-        g_means = np.empty((n, 3), np.float32)  # project_backward writes every row
-        g_quats = np.empty((n, 4), np.float32)
-        g_scales = np.empty((n, 3), np.float32)
-        g_opac = np.empty(n, np.float32)
-        g_colors = np.empty((n, 3), np.float32)
-        g_extras = np.empty((n, Kp), np.float32)
-        g_m2d = np.empty((n, 2), np.float32)
-        nv = vis.shape[0]
-        nchunks = max(1, (nv + kc.SOA_CHUNK - 1) // kc.SOA_CHUNK)
-        g_pose = np.zeros((nchunks, 12), np.float64)
+        grads = _gaussian_gradients(n, Kp, vis.shape[0])
+        g_means, g_quats, g_scales, g_opac, g_colors, g_extras, g_m2d, g_pose = grads
         R = R_cw.detach().to(torch.float64).contiguous().numpy()
         t = t_cw.detach().to(torch.float64).contiguous().numpy()
         kc.project_backward(_np32(means), _np32(quats), _np32(scales), R, t, intr.fx, intr.fy, intr.cx, intr.cy,
