@@ -255,7 +255,11 @@ def _lock_file(cache: Path):
     except ImportError:  # Windows: no lock; at worst two processes compile the same kernels
         return None
     f = open(cache / "ggfslam-kernels.lock", "a")  # noqa: SIM115 - held until the compile ends
-    fcntl.flock(f, fcntl.LOCK_EX)
+    try:
+        fcntl.flock(f, fcntl.LOCK_EX)
+    except OSError:  # a file system without locks (some network mounts): go on unlocked
+        f.close()
+        return None
     return f
 
 
