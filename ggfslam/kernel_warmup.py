@@ -194,17 +194,25 @@ class KernelCompile:
 
         self.cache, self.t0, self._lock = cache, time.perf_counter(), lock
         self._claims = tempfile.TemporaryDirectory(prefix="ggfslam-kernels-")
-        cmd = [sys.executable, "-m", "ggfslam.kernel_warmup", "--worker", self._claims.name]
-        env = {**os.environ, "NUMBA_CACHE_DIR": str(cache), "OMP_NUM_THREADS": "1"}
-        self._procs = [subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
-                       for _ in range(jobs)]
+        work = Path(self._claims.name)
+        cmd = [sys.executable, "-m", "ggfslam.kernel_warmup", "--worker", str(work)]
+        # this package's folder first on the path: the caller may have imported it from a source tree
+        path = os.pathsep.join(x for x in (str(_PACKAGE.parent), os.environ.get("PYTHONPATH", "")) if x)
+        env = {**os.environ, "NUMBA_CACHE_DIR": str(cache), "OMP_NUM_THREADS": "1", "PYTHONPATH": path}
+        # output to files, not pipes: a worker that wrote more than a pipe holds would wait for a reader
+        self._logs = [(work / f"worker{i}.out", work / f"worker{i}.err") for i in range(jobs)]
+        self._procs = []
+        for out, err in self._logs:
+            with open(out, "w") as fo, open(err, "w") as fe:
+                self._procs.append(subprocess.Popen(cmd, stdout=fo, stderr=fe, env=env))
         self.results: dict[str, tuple[float, str | None]] = {}
 
     def wait(self) -> bool:
         """Wait for every part; write the marker when all compiled. Returns whether they did."""
         try:
-            for p in self._procs:
-                out, err = p.communicate()
+            for p, (out_file, err_file) in zip(self._procs, self._logs):
+                p.wait()
+                out, err = out_file.read_text(errors="replace"), err_file.read_text(errors="replace")
                 for line in out.splitlines():
                     try:
                         name, seconds, error = json.loads(line)
@@ -236,7 +244,7 @@ class KernelCompile:
             if p.poll() is None:
                 p.terminate()
         for p in self._procs:
-            p.communicate()
+            p.wait()
         self._release()
 
     def _release(self) -> None:
