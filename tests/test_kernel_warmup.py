@@ -31,15 +31,14 @@ def signatures():
 for part in kw.PARTS:
     kw._run_part(part)
 before = signatures()
-# what a run does: tracking, a mapper's seeding and training steps rendered by the compiled rasterizer (with the
-# planar-weight channel of the viewer's renders too), depth registration and normals, at the demo's size
+# what a run does: tracking, a mapper's seeding and training steps rendered by the compiled rasterizer at 320x240,
+# and a render with an extra channel (as the viewer's planar-weight renders), forward and backward
 from ggfslam.config import config_from_dict
 from ggfslam.data.types import Camera
 import numpy as np, torch
 cfg = config_from_dict({"dataset": {"kind": "synthetic"}})
 cam = Camera(320.0, 320.0, 159.5, 119.5, 320, 240, 1000.0)
 kw.load_kernels(cfg, cam, mapping=True, backend="cpu")
-kw._part_tracking()
 from ggfslam.render import rasterize
 from ggfslam.render.scenes import random_gaussians
 sc = {k: torch.from_numpy(v).requires_grad_(True) for k, v in random_gaussians(50, seed=1, n_extras=1).items()}
