@@ -251,6 +251,8 @@ def compile_kernels_cmd(jobs: Optional[int] = typer.Option(None, help="Processes
     for part, (seconds, error) in ({} if job is None else job.results).items():
         console.print(f"  {part}: {seconds:.0f} s" + (f", failed: {error}" if error else ""), highlight=False)
     if not ok:
+        if job is None:
+            console.print("nothing compiled (--jobs 0)")
         raise typer.Exit(1)
     console.print(f"kernels compiled in {time.perf_counter() - t0:.0f} s", highlight=False)
 

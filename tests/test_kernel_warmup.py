@@ -117,3 +117,17 @@ def test_a_fresh_cache_is_filled_side_by_side(tmp_path):
              "print(kw.compile_kernels(jobs=2))")
     res = subprocess.run([sys.executable, "-c", check], env=env, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0 and res.stdout.strip() == "None", res.stderr[-2000:]
+
+
+def test_compile_kernels_command(tmp_path, monkeypatch):
+    """`ggfslam compile-kernels`: says when there is nothing to do; --jobs 0 compiles nothing and fails."""
+    from typer.testing import CliRunner
+
+    from ggfslam.cli import app
+
+    monkeypatch.setattr(kw, "_cache_dir", lambda: tmp_path)
+    res = CliRunner().invoke(app, ["compile-kernels", "--jobs", "0"])
+    assert res.exit_code == 1 and "nothing compiled" in res.output
+    kw._write_marker(tmp_path, {}, 0.0, 1)
+    res = CliRunner().invoke(app, ["compile-kernels"])
+    assert res.exit_code == 0 and "compiled already" in res.output
