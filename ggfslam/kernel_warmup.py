@@ -228,7 +228,12 @@ class KernelCompile:
             ok = len(self.results) == len(PARTS) and not any(e for _, e in self.results.values())
             wall = time.perf_counter() - self.t0
             if ok:
-                _write_marker(self.cache, {name: s for name, (s, _) in self.results.items()}, wall, len(self._procs))
+                try:
+                    _write_marker(self.cache, {name: s for name, (s, _) in self.results.items()}, wall,
+                                  len(self._procs))
+                except OSError as e:  # a read-only cache: numba could not keep the code either
+                    log.warning("could not record the compiled kernels in %s (%s)", self.cache, e)
+                    ok = False
             log.info("kernels compiled in %.0f s by %d processes (%s)", wall, len(self._procs),
                      ", ".join(f"{n} {s:.0f} s" for n, (s, _) in self.results.items()))
             return ok
@@ -290,8 +295,12 @@ def compile_kernels(jobs: int | None = None, background: bool = False) -> Kernel
     cache = _cache_dir()
     if jobs <= 0 or cache is None or kernels_compiled():
         return None
-    cache.mkdir(parents=True, exist_ok=True)
-    lock = _lock_file(cache)
+    try:
+        cache.mkdir(parents=True, exist_ok=True)
+        lock = _lock_file(cache)
+    except OSError as e:  # an unwritable cache: numba compiles in the run (and warns that it cannot cache)
+        log.warning("cannot compile the kernels into %s (%s)", cache, e)
+        return None
     if kernels_compiled():  # another process finished the compile while this one waited for the lock
         if lock is not None:
             lock.close()

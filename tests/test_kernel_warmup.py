@@ -131,3 +131,11 @@ def test_compile_kernels_command(tmp_path, monkeypatch):
     kw._write_marker(tmp_path, {}, 0.0, 1)
     res = CliRunner().invoke(app, ["compile-kernels"])
     assert res.exit_code == 0 and "compiled already" in res.output
+
+
+def test_an_unwritable_cache_leaves_the_run_to_compile(tmp_path, monkeypatch):
+    """A cache folder that cannot be made (here: a file in its way) is a warning, not a failed run."""
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    monkeypatch.setattr(kw, "_cache_dir", lambda: blocker / "numba")
+    assert kw.compile_kernels(jobs=2) is None
