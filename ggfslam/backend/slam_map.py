@@ -189,13 +189,19 @@ class SlamMap:
         with self.lock:
             self.keyframes[kf.id] = kf
 
+    def observer_counts(self, lm_ids) -> Counter:
+        """Keyframe id -> how many of the landmarks ``lm_ids`` it observes (insertion order: the first landmark's
+        observers first, which ``most_common`` keeps among equal counts)."""
+        with self.lock:
+            obs = self.observations
+            # one counting pass over every observer of every point, in the order a loop per point would count
+            return Counter(chain.from_iterable(obs[lm].keys() for lm in lm_ids))
+
     def covisibility(self, kf_id: int) -> Counter:
         """Keyframe id -> number of landmarks shared with keyframe ``kf_id``."""
         with self.lock:
             kf = self.keyframes[kf_id]
-            obs = self.observations
-            # one counting pass over every observer of every point, in the order a loop per point would count
-            count = Counter(chain.from_iterable(obs[lm].keys() for lm in kf.landmark_ids[kf.landmark_ids >= 0]))
+            count = self.observer_counts(kf.landmark_ids[kf.landmark_ids >= 0])
             count.pop(kf_id, None)
             return count
 

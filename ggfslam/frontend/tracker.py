@@ -8,9 +8,7 @@ to its reference keyframe, so backend corrections (BA, loop closure) move the wh
 """
 from __future__ import annotations
 
-from collections import Counter
 from dataclasses import dataclass
-from itertools import chain
 
 import numpy as np
 
@@ -168,8 +166,7 @@ class OrbTracker:
     def _track_local_map(self, F: Features, T: np.ndarray, lm: np.ndarray, kp: np.ndarray):
         """Add matches from the local map (landmarks of keyframes covisible with the current matches), refine."""
         with self.map.lock:
-            obs = self.map.observations
-            counts = Counter(chain.from_iterable(obs[l].keys() for l in lm))  # one pass, in the same order
+            counts = self.map.observer_counts(lm)
             local = [k for k, _ in counts.most_common(self.cfg.local_map_keyframes)]
             if self.ref_kf >= 0 and self.ref_kf not in local:
                 local.append(self.ref_kf)
