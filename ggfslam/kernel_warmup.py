@@ -13,6 +13,7 @@ records a complete compile, so later runs skip this after one check. A part that
 compiles what is missing as before, and the failure is logged."""
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import logging
@@ -33,8 +34,10 @@ MARKER_PREFIX = "ggfslam-kernels-"
 _PACKAGE = Path(__file__).resolve().parent
 
 
+@functools.lru_cache(maxsize=1)
 def _kernel_sources() -> list[Path]:
-    """The package's source files with numba kernels numba caches (their stamps key the marker)."""
+    """The package's source files with numba kernels numba caches (their stamps key the marker). Scanned once per
+    process (~20 ms; a run checks the marker two or three times); their stamps are read at every check."""
     cached = re.compile(r"@(numba\.)?njit\([^)]*cache=True")
     return sorted(p for p in _PACKAGE.rglob("*.py") if cached.search(p.read_text(encoding="utf-8", errors="ignore")))
 
@@ -86,22 +89,25 @@ def _tiny_camera():
     return Camera(40.0, 40.0, 31.5, 23.5, 64, 48, 1000.0)
 
 
-def load_kernels(config, camera, mapping: bool, backend: str | None = None) -> None:
-    """Run tracking's compiled kernels (projection matching, pose refinement) and, with ``mapping``, the mapper's
-    (seeding, training steps with their losses, the field) once on a throwaway keyframe of ``camera``'s size, with
-    ``backend`` (default: the config's) rendering: compiles them, or loads them from the cache."""
+def load_kernels(config, camera, mapping: bool, backend: str | None = None, tracking: bool = True) -> None:
+    """Run tracking's compiled kernels (projection matching, pose refinement; unless not ``tracking``) and, with
+    ``mapping``, the mapper's (seeding, training steps with their losses, the field) once on a throwaway keyframe of
+    ``camera``'s size, with ``backend`` (default: the config's) rendering: compiles them, or loads them from the
+    cache."""
     import tempfile
 
-    from ggfslam.frontend.matching import match_projected
-    from ggfslam.frontend.pose_refine import refine_pose
-
     rng = np.random.default_rng(0)
-    pts = rng.uniform([-1, -1, 2], [1, 1, 3], (16, 3))  # [16, 3] in front of the camera
-    uv = np.column_stack([camera.fx * pts[:, 0] / pts[:, 2] + camera.cx, camera.fy * pts[:, 1] / pts[:, 2] + camera.cy])
-    desc = rng.integers(0, 256, (16, 32), dtype=np.uint8)
-    level = np.zeros(16, np.int64)
-    match_projected(uv, desc, level, uv, desc, level, 5.0, np.ones(1), 50, 0.9)
-    refine_pose(np.eye(4), pts, uv, pts[:, 2], np.ones(16), camera, config.tracking.virtual_baseline)
+    if tracking:
+        from ggfslam.frontend.matching import match_projected
+        from ggfslam.frontend.pose_refine import refine_pose
+
+        pts = rng.uniform([-1, -1, 2], [1, 1, 3], (16, 3))  # [16, 3] in front of the camera
+        uv = np.column_stack([camera.fx * pts[:, 0] / pts[:, 2] + camera.cx,
+                              camera.fy * pts[:, 1] / pts[:, 2] + camera.cy])
+        desc = rng.integers(0, 256, (16, 32), dtype=np.uint8)
+        level = np.zeros(16, np.int64)
+        match_projected(uv, desc, level, uv, desc, level, 5.0, np.ones(1), 50, 0.9)
+        refine_pose(np.eye(4), pts, uv, pts[:, 2], np.ones(16), camera, config.tracking.virtual_baseline)
     if mapping:
         from ggfslam.mapping.mapper import Mapper
         from ggfslam.render.types import RenderSettings
@@ -119,9 +125,9 @@ def load_kernels(config, camera, mapping: bool, backend: str | None = None) -> N
 
 
 def _part_mapping() -> None:
-    """The mapper's kernels but the rasterizer's (those are the other parts): a training step rendered by the
-    plain-torch reference backend."""
-    load_kernels(_default_config(), _tiny_camera(), mapping=True, backend="reference")
+    """The mapper's kernels but the rasterizer's and tracking's (those are the other parts): a training step
+    rendered by the plain-torch reference backend."""
+    load_kernels(_default_config(), _tiny_camera(), mapping=True, backend="reference", tracking=False)
 
 
 def _part_tracking() -> None:
