@@ -2,9 +2,10 @@
 
 numba compiles a kernel the first time it is called, one kernel at a time, in the process that calls it, and keeps
 the machine code in its cache (``ggfslam/numba_setup.py``; entries are per host CPU and per source file version).
-On a fresh install a run therefore first spends about two minutes compiling on one core: on the 2-core VM
-(2026-12-07, an empty cache) 135 s, of which the rasterizer's kernels 88 s (its compositing backward alone 36 s), and
-the first `ggfslam demo` took 4 min 6 s against 1 min 34 s with the cache filled. ``compile_kernels`` splits them
+On a fresh install a run therefore first spends a minute and a half compiling on one core: on the 2-core VM
+(2026-12-07, an empty cache) 89 s, of which the rasterizer's kernels 52 s (135 s and 88 s before the compositing
+kernels' bodies became worker functions, ``render/kernels_cpu.py: _WorkerPipeline``); the first `ggfslam demo` took
+4 min 6 s then against 1 min 34 s with the cache filled. ``compile_kernels`` splits them
 into ``PARTS`` of similar compile time and compiles them in worker processes side by side, one part after another
 per worker; ``slam.run`` starts it when the cache is not known to be complete, overlapping its dataset's opening
 (the demo renders its sequence meanwhile), and waits for it before the first frame. A marker file in numba's cache
