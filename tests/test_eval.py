@@ -105,6 +105,36 @@ def test_ssim_matches_pytorch_msssim_values_and_gradients(shape):
     torch.testing.assert_close(ga, gr, rtol=1e-5, atol=1e-9)
 
 
+@pytest.mark.parametrize("shape", [(480, 640), (37, 23), (11, 11), (8, 30)])
+def test_ssim_np_is_the_differentiable_ssim(shape):
+    """The evaluation's SSIM (OpenCV filters) gives the training loss's SSIM (torch, tested against pytorch_msssim
+    above) to float32 precision, at a frame's size, odd sizes, the window's size and below it (the fallback)."""
+    rng = np.random.default_rng(3)
+    ref = rng.random(shape + (3,)).astype(np.float32)  # [H, W, 3]
+    for img in (ref, np.clip(ref + rng.normal(0, 0.1, ref.shape), 0, 1).astype(np.float32),
+                rng.random(shape + (3,)).astype(np.float32)):
+        with torch.no_grad():
+            want = float(ssim(torch.from_numpy(img).permute(2, 0, 1), torch.from_numpy(ref).permute(2, 0, 1)))
+        assert ssim_np(img, ref) == pytest.approx(want, abs=1e-5)
+    with pytest.raises(ValueError, match="RGB images"):
+        ssim_np(ref[..., :2], ref[..., :2])
+
+
+def test_rendered_normals_rule_is_the_compiled_one():
+    """The evaluation scores a render's normals by the compiled rule (geometry/depth.py); the render's own
+    ``normals`` (torch) must be the same rule, holes and borders included."""
+    from ggfslam.geometry.depth import normals_from_depth as compiled
+    from ggfslam.render.normals import normals_from_depth as rendered
+
+    rng = np.random.default_rng(0)
+    depth = (2.0 + 0.3 * rng.random((40, 50))).astype(np.float32)  # [H, W]
+    depth[10:14, 20:25] = 0.0
+    a = compiled(depth, 60.0, 58.0, 24.5, 19.5)
+    b = rendered(torch.from_numpy(depth), 60.0, 58.0, 24.5, 19.5).numpy()
+    np.testing.assert_array_equal(np.abs(a).sum(-1) == 0, np.abs(b).sum(-1) == 0)
+    np.testing.assert_allclose(a, b, atol=2e-6)
+
+
 def test_metric_interface_statistics():
     m = PSNR()
     ref = np.zeros((4, 4, 3), np.float32)

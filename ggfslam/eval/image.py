@@ -32,6 +32,7 @@ def psnr(img: np.ndarray | torch.Tensor, ref: np.ndarray | torch.Tensor, mask=No
 
 
 _WINDOWS: dict[tuple, torch.Tensor] = {}
+_SSIM_SIZE = 11  # SSIM's Gaussian window (sigma 1.5), as pytorch_msssim's default
 
 
 def _gauss_window(channels: int, dtype, device, size: int = 11, sigma: float = 1.5) -> torch.Tensor:
@@ -68,9 +69,27 @@ def ssim(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
 
 
 def ssim_np(img: np.ndarray, ref: np.ndarray) -> float:
-    """SSIM of two numpy RGB images [H, W, 3] in [0, 1]."""
-    with torch.no_grad():
-        return float(ssim(_as_chw(img), _as_chw(ref)))
+    """SSIM of two numpy RGB images [H, W, 3] in [0, 1]: ``ssim``'s formula (11x11 Gaussian window, sigma 1.5, 'valid'
+    borders), its five maps filtered by OpenCV (a fifth of the grouped convolutions' time at 640x480; the same value
+    to ~1e-6, tests/test_eval.py)."""
+    x = np.asarray(img, np.float32)
+    y = np.asarray(ref, np.float32)
+    if x.ndim != 3 or x.shape[2] != 3 or y.shape != x.shape:
+        raise ValueError(f"ssim_np: expected two RGB images [H, W, 3] of one size, got {x.shape} and {y.shape}")
+    r = _SSIM_SIZE // 2
+    if x.shape[0] < _SSIM_SIZE or x.shape[1] < _SSIM_SIZE:
+        with torch.no_grad():
+            return float(ssim(_as_chw(x), _as_chw(y)))
+    g = _gauss_window(1, torch.float64, torch.device("cpu")).view(-1).numpy()  # [11]
+
+    def blur(z: np.ndarray) -> np.ndarray:  # [H, W, 3] -> the valid region [H - 10, W - 10, 3]
+        return cv2.sepFilter2D(z, cv2.CV_32F, g, g, borderType=cv2.BORDER_REFLECT)[r:-r, r:-r]
+
+    mu1, mu2, e11, e22, e12 = blur(x), blur(y), blur(x * x), blur(y * y), blur(x * y)
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    mu1_sq, mu2_sq, mu12 = mu1 * mu1, mu2 * mu2, mu1 * mu2
+    cs = (2 * (e12 - mu12) + c2) / ((e11 - mu1_sq) + (e22 - mu2_sq) + c2)
+    return float((((2 * mu12 + c1) / (mu1_sq + mu2_sq + c1)) * cs).mean(dtype=np.float64))
 
 
 def depth_l1_cm(depth: np.ndarray, ref: np.ndarray) -> float:
@@ -123,8 +142,13 @@ def colour_error_split(img: np.ndarray, ref: np.ndarray) -> dict:
     of blur or small misalignment. ``psnr_without_gross``: the PSNR of img [H, W, 3] against ref over the other
     pixels; ``gross_area_percent``: the share of the image they cover. A diagnostic beside the PSNR, never
     instead of it."""
-    se = ((np.asarray(img, np.float64) - np.asarray(ref, np.float64)) ** 2).mean(-1)  # [H, W]
+    d = np.subtract(img, ref, dtype=np.float64)  # [H, W, 3]
+    se = np.einsum("ijk,ijk->ij", d, d) / 3.0  # [H, W] mean over RGB (a quarter of the time of (d ** 2).mean(-1))
     gross = (se > GROSS_SQ_ERROR).astype(np.uint8)
+    if not gross.any():  # the common case: no region to label
+        mse = float(se.mean())
+        return {"psnr_without_gross": float("inf") if mse == 0 else -10.0 * float(np.log10(mse)),
+                "gross_area_percent": 0.0}
     _, labels, stats, _ = cv2.connectedComponentsWithStats(gross, connectivity=8)
     big = np.nonzero(stats[1:, cv2.CC_STAT_AREA] >= GROSS_MIN_AREA * se.size)[0] + 1  # [B] labels of big regions
     mask = np.isin(labels, big) if len(big) else np.zeros(se.shape, bool)
@@ -166,10 +190,13 @@ class LPIPS:
 
 def normal_error_deg(normals: np.ndarray, ref: np.ndarray) -> float:
     """Mean angle (degrees) between unit normal maps [H, W, 3] over pixels where both are defined (non-zero)."""
-    ok = (np.linalg.norm(normals, axis=-1) > 0.5) & (np.linalg.norm(ref, axis=-1) > 0.5)
+    a = np.asarray(normals, np.float64).reshape(-1, 3)  # [H W, 3]
+    b = np.asarray(ref, np.float64).reshape(-1, 3)  # [H W, 3]
+    # squared lengths and dot products row by row (einsum: a quarter of the time of norm() and boolean row gathers)
+    ok = (np.einsum("ij,ij->i", a, a) > 0.25) & (np.einsum("ij,ij->i", b, b) > 0.25)  # [H W]: both |n| > 0.5
     if not ok.any():
         return float("nan")
-    cos = np.clip((normals[ok] * ref[ok]).sum(-1), -1.0, 1.0)
+    cos = np.clip(np.einsum("ij,ij->i", a, b)[ok], -1.0, 1.0)
     return float(np.degrees(np.arccos(cos)).mean())
 
 

@@ -51,7 +51,9 @@ def render_metrics(mapper, dataset, poses: np.ndarray, indices: np.ndarray, intr
         ref_normals = normals_from_depth(depth, intr.fx, intr.fy, intr.cx, intr.cy)
         row = {"index": int(i), "psnr": psnr(img, rgb), **colour_error_split(img, rgb), "ssim": ssim_np(img, rgb),
                "depth_l1_cm": depth_l1_cm(out.depth.numpy(), depth),
-               "normal_error_deg": normal_error_deg(out.normals.numpy(), ref_normals),
+               # the rendered depth's normals by the compiled rule (out.normals is the same rule in torch, ~4x slower)
+               "normal_error_deg": normal_error_deg(normals_from_depth(out.depth.numpy(), intr.fx, intr.fy, intr.cx,
+                                                                       intr.cy), ref_normals),
                **depth_error_split(out.depth.numpy(), depth)}
         if gt_depth is not None:
             row["depth_l1_sensor_cm"] = depth_l1_cm(out.depth.numpy(), sensor_depth)
