@@ -248,13 +248,13 @@ def run(config: Config, out_dir: str | Path, overwrite: bool = False, progress: 
         if compiling is not None:
             compiling.cancel()
         raise
-    if compiling is not None:
-        compiling.wait()
     handler = _attach_log(run_dir)
     st = _RunState(len(dataset))
     if source is not None:
         st.live = {"latency_ms": [], "stopped_by": None, "source": source.describe()}
     try:
+        if compiling is not None:  # after the log is attached, so the run's log.txt records the compile
+            compiling.wait()
         with _StopRequests() as stop:
             log.info("run %s on %s", config.name, dataset.describe())
             _restore_or_start(config, dataset, run_dir, ckpt, st)

@@ -161,6 +161,33 @@ def test_a_run_killed_at_a_random_moment_resumes_to_the_same_result(sequence, cl
     assert not list(run.glob(".*.tmp-*")) and not list((run / "keyframes").glob(".*.tmp-*"))
 
 
+def test_ctrl_c_while_the_kernels_compile_stops_the_run_resumably_and_the_log_keeps_the_compile(
+        sequence, clean_run, tmp_path, monkeypatch):
+    """A fresh install's run waits for its kernel compile before the first frame: what the compile reports lands in
+    the run's log.txt, and Ctrl-C during the wait cancels the compile and leaves a run that resumes from frame 0 to
+    the uninterrupted result."""
+    import logging
+
+    class Compiling:  # stands in for kernel_warmup.KernelCompile: reports, then the user presses Ctrl-C
+        def wait(self):
+            logging.getLogger("ggfslam.kernels").info("kernels compiled in 3 s by 2 processes (test)")
+            raise KeyboardInterrupt
+
+        def cancel(self):
+            pass
+
+    monkeypatch.setattr(slam, "compile_kernels", lambda background: Compiling())
+    run = tmp_path / "run"
+    with pytest.raises(KeyboardInterrupt):
+        slam.run(_config(sequence), run, progress=False)
+    assert "kernels compiled in 3 s by 2 processes (test)" in (run / "log.txt").read_text()
+    info = json.loads((run / "run.json").read_text())
+    assert info["status"] == "interrupted" and info["stopped_at_frame"] == 0 and info["resume_from_frame"] == 0
+    monkeypatch.undo()
+    slam.run(_config(sequence), run, progress=False, resume=True)
+    np.testing.assert_array_equal(np.loadtxt(run / "trajectory.txt"), np.loadtxt(clean_run[0] / "trajectory.txt"))
+
+
 def test_ctrl_c_stops_after_the_frame_with_everything_saved(sequence, clean_run, tmp_path, monkeypatch):
     import signal
 
