@@ -210,6 +210,7 @@ def demo(
     view: bool = typer.Option(False, "--view", help="Serve the web viewer, updated live while the sequence runs."),
     port: int = typer.Option(8080, help="--view: port to serve on (0: any free one)."),
     host: str = typer.Option("127.0.0.1", help="--view: address to bind (default: this machine only)."),
+    no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bar (logs, CI)."),
 ):
     """Generate the built-in synthetic sequence, run the whole pipeline on it and print the metrics."""
     import copy
@@ -224,7 +225,7 @@ def demo(
     _note_compile(cfg)
     with _live_viewer(view, host, port) as viewer:
         console.print("rendering the synthetic sequence (cached after the first time) ...")
-        metrics = slam.run(cfg, out, observer=viewer)
+        metrics = slam.run(cfg, out, observer=viewer, progress=not no_progress)
         _print_result(metrics, out, "ggfslam demo: synthetic room")
 
 
