@@ -1465,7 +1465,7 @@ def project_backward(means, quats, scales, Rcw, tcw, fx, fy, cx, cy, width, heig
                     g_m2d[i, 1] = 0.0
 
 
-@njit(cache=True, nogil=True, inline="always", fastmath=FMA)
+@njit(cache=True, nogil=True, fastmath=FMA, error_model="numpy", pipeline_class=_WorkerPipeline)
 def _chain_rule(buf, n, Rt, t0, t1, t2, fx, fy, limxp, limxn, limyp, limyn, eps2d):
     """The chain rule of ``project_backward`` for the chunk's n Gaussians (buffer fields PB_IN in, PB_OUT out): from
     dL/d(pixel centre, conic, depth) through conic -> 2D covariance -> (Jacobian, world-to-camera rotation, 3D
