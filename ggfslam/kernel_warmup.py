@@ -29,8 +29,9 @@ import numpy as np
 log = logging.getLogger("ggfslam.kernels")
 
 PARTS = ("mapping", "projection", "composite_backward", "composite_forward", "tracking")
-"""Longest first (compile seconds alone on the 2-core VM, 2026-12-07: 41, 30, 17, 12, 5): workers claim them in this
-order, which on two workers gives {mapping, composite_forward} and {projection, composite_backward, tracking}."""
+"""Longest first (compile seconds beside another worker on the 2-core VM, 2026-12-07: 38, 27, 14, 12, 5): workers
+claim them in this order, which on two workers gives {mapping, composite_forward} and {projection, composite_backward,
+tracking}, 50 and 46 s (54 s wall with the processes' start)."""
 MARKER_PREFIX = "ggfslam-kernels-"
 _PACKAGE = Path(__file__).resolve().parent
 

@@ -70,7 +70,7 @@ def ssim(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
 
 def ssim_np(img: np.ndarray, ref: np.ndarray) -> float:
     """SSIM of two numpy RGB images [H, W, 3] in [0, 1]: ``ssim``'s formula (11x11 Gaussian window, sigma 1.5, 'valid'
-    borders), its five maps filtered by OpenCV (a fifth of the grouped convolutions' time at 640x480; the same value
+    borders), its five maps filtered by OpenCV (a third of the grouped convolutions' time at 640x480; the same value
     to ~1e-6, tests/test_eval.py)."""
     x = np.asarray(img, np.float32)
     y = np.asarray(ref, np.float32)

@@ -1024,6 +1024,18 @@ def _unblend_row(tb, pb, ws, nw, C, o, f0, f1, f2, f3, f4, f5, f6, f7, kf, dy, e
         _unblend_lanes(tb, pb, ws, TILE // 4, o, f0, f1, f2, f3, 0.0, 0.0, 0.0, 0.0, kf, dy, ec, False)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _tile_box(order, jt, ntx, width, height):
+    """Tile ``order[jt]`` of the grid (``ntx`` tiles a row): its index and pixel box x0, y0, x1, y1 (inclusive,
+    clipped to the image)."""
+    tile = order[jt]
+    ty = tile // ntx
+    tx = tile - ty * ntx
+    x0 = tx * TILE
+    y0 = ty * TILE
+    return tile, x0, y0, min(x0 + TILE, width) - 1, min(y0 + TILE, height) - 1
+
+
 @njit(cache=True, nogil=True, fastmath=FMA, error_model="numpy", pipeline_class=_WorkerPipeline)
 def _forward_worker(pk, pf, pidx, tile_start, order, bg, width, height, depth_min_alpha, color, depth_raw, extras,
                     depth, tfinal, last, work_bwd, counter):
@@ -1049,13 +1061,7 @@ def _forward_worker(pk, pf, pidx, tile_start, order, bg, width, height, depth_mi
         jt = _fetch_add(counter, np.int64(1))
         if jt >= ntiles:
             break
-        tile = order[jt]
-        ty = tile // ntx
-        tx = tile - ty * ntx
-        x0 = tx * TILE
-        y0 = ty * TILE
-        x1 = min(x0 + TILE, width) - 1
-        y1 = min(y0 + TILE, height) - 1
+        tile, x0, y0, x1, y1 = _tile_box(order, jt, ntx, width, height)
         npix = (x1 - x0 + 1) * (y1 - y0 + 1)
         k0 = tile_start[tile]
         if lanes:
@@ -1182,13 +1188,7 @@ def _backward_worker(pk, pf, pidx, tile_start, order, bg, width, height, depth_m
         jt = _fetch_add(counter, np.int64(1))
         if jt >= ntiles:
             break
-        tile = order[jt]
-        ty = tile // ntx
-        tx = tile - ty * ntx
-        x0 = tx * TILE
-        y0 = ty * TILE
-        x1 = min(x0 + TILE, width) - 1
-        y1 = min(y0 + TILE, height) - 1
+        tile, x0, y0, x1, y1 = _tile_box(order, jt, ntx, width, height)
         k0 = tile_start[tile]
         k1 = tile_start[tile + 1]
         kmax = k0
