@@ -93,10 +93,11 @@ CHUNK = 1024  # Gaussians per work item of the per-Gaussian kernels
 class _WorkerPipeline(CompilerBase):
     """numba's nopython pipeline with array arguments marked ``noalias``: with ``error_model="numpy"`` on the
     decorator, the flags numba compiles a ``prange`` loop's body with. The compositing kernels' bodies are such
-    workers, called once per thread from a two-line parallel wrapper, because numba's parfor passes (fusion, array
-    analysis) over a large inlined loop body took most of their compile time: on the 2-core VM (2026-12-07) the
-    forward compiled in 12.5 s instead of 28.7, the backward in 14.6 instead of 38.6; the outputs are the same to the
-    bit and a training step as fast (forward 5-9% faster, backward 4-10% slower; 100k Gaussians, 320x240)."""
+    workers, called once per thread from a two-line parallel wrapper (and the projection backward's chain rule is
+    such a function), because numba's parfor passes (fusion, array analysis) over a large inlined loop body took
+    most of their compile time: on the 2-core VM (2026-12-07) the forward compiled in 12.5 s instead of 28.7, the
+    backward in 14.6 instead of 38.6; the outputs are the same to the bit and a training step as fast (forward 5-9%
+    faster, backward 4-10% slower; 100k Gaussians, 320x240)."""
 
     def define_pipelines(self):
         self.state.flags.noalias = True
