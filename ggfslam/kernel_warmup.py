@@ -150,16 +150,16 @@ def _part_tracking() -> None:
 
 
 def _run_part(name: str) -> None:
-    if name in ("composite_backward", "composite_forward", "projection"):
-        from ggfslam.render.cpu import compile_kernels
-
-        compile_kernels(name)
-    elif name == "mapping":
+    if name not in PARTS:
+        raise ValueError(f"unknown kernel part {name!r}; expected one of {', '.join(PARTS)}")
+    if name == "mapping":
         _part_mapping()
     elif name == "tracking":
         _part_tracking()
-    else:
-        raise ValueError(f"unknown kernel part {name!r}; expected one of {', '.join(PARTS)}")
+    else:  # the rasterizer's groups (``render.cpu.KERNEL_STAGES``), which compile_kernels checks
+        from ggfslam.render.cpu import compile_kernels
+
+        compile_kernels(name)
 
 
 def _claim(claims: Path, name: str) -> bool:

@@ -55,7 +55,7 @@ def ssim(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
     if img.dim() == 3:
         img, ref = img[None], ref[None]
     B, C, H, W = img.shape
-    if H < 11 or W < 11:
+    if H < _SSIM_SIZE or W < _SSIM_SIZE:
         return _ms_ssim(img, ref, data_range=1.0, size_average=True)
     z = torch.cat([img, ref, img * img, ref * ref, img * ref], dim=1)  # [B, 5C, H, W]
     win = _gauss_window(5 * C, img.dtype, img.device)
