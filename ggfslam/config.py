@@ -391,6 +391,10 @@ class BackendConfig(_Section):
     factors of the keyframes that have a view of the map), before the map's final refinement: local windows leave
     keyframes that share landmarks across windows slightly inconsistent (TUM fr3/cabinet ATE 2.66 -> 2.51 cm,
     7-Scenes kitchen 5.06 -> 5.04 cm, in 0.1-0.3 s). Needs ``fusion``, like ``global_ba``."""
+    feature_cache: int = 64
+    """Keyframes whose ORB features (~130 KB each) a run keeps in memory, the most recently used; the others are read
+    back from the run directory's ``keyframe_features/`` when tracking, bundle adjustment or loop detection asks for
+    them, so memory stops growing with every keyframe. Results do not depend on it."""
 
     @model_validator(mode="after")
     def _check(self) -> "BackendConfig":
@@ -398,6 +402,8 @@ class BackendConfig(_Section):
             raise ValueError("culling_redundancy must be in (0, 1]: the share of a keyframe's points others see")
         if self.culling_observers < 1:
             raise ValueError("culling_observers must be >= 1 (other keyframes that see a redundant point)")
+        if self.feature_cache < 1:
+            raise ValueError("feature_cache must be >= 1 (keyframes whose features stay in memory)")
         return self
 
 

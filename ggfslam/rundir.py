@@ -21,6 +21,7 @@ GAUSSIANS_FILE = "gaussians.ply"
 PLANARITY_FILE = "gaussians_planarity.ply"  # the same Gaussians coloured by P_2D (red = 2D, blue = 3D)
 MESH_FILE = "mesh.ply"
 KEYFRAME_IMAGES_DIR = "keyframes"
+KEYFRAME_FEATURES_DIR = "keyframe_features"  # tracking's per-keyframe ORB features (backend/feature_store.py)
 
 
 def is_run_dir(path: Path) -> bool:

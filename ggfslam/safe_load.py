@@ -36,6 +36,7 @@ class UnsafeCheckpoint(Exception):
 def tracker_classes() -> dict[tuple[str, str], type]:
     """The classes a pickled tracker may contain: (module, name) -> class."""
     from ggfslam.backend.backend import Backend, BackendStats
+    from ggfslam.backend.feature_store import FeatureStore
     from ggfslam.backend.loop_closure import LoopClosureConfig, LoopDetector, _Keyframe
     from ggfslam.backend.place_recognition import BowVector, KeyframeDatabase, Vocabulary
     from ggfslam.backend.slam_map import KeyFrame, RetiredKeyFrame, SlamMap
@@ -49,7 +50,8 @@ def tracker_classes() -> dict[tuple[str, str], type]:
 
     classes = [Backend, BackendStats, LoopClosureConfig, LoopDetector, _Keyframe, BowVector, KeyframeDatabase,
                Vocabulary, KeyFrame, RetiredKeyFrame, SlamMap, BackendConfig, TrackingConfig, Camera, Frame,
-               DenseOdometry, Features, OrbExtractor, Plane, FrameRecord, OrbTracker, TrackingState, set, frozenset]
+               DenseOdometry, Features, FeatureStore, OrbExtractor, Plane, FrameRecord, OrbTracker, TrackingState, set,
+               frozenset]
     out = {(c.__module__, c.__qualname__): c for c in classes}
     out.update({(g.__module__, g.__qualname__): g for g in NUMPY_GLOBALS})
     # numpy pickles record the module that defined a function at save time (numpy 1.x: numpy.core)

@@ -31,6 +31,7 @@ from ggfslam.rundir import (
     GAUSSIANS_FILE,
     GRAPH_FILE,
     GROUNDTRUTH_FILE,
+    KEYFRAME_FEATURES_DIR,
     KEYFRAME_IMAGES_DIR,
     KEYFRAMES_FILE,
     LOG_FILE,
@@ -304,7 +305,8 @@ def _open_run_dir(config: Config, out_dir: str | Path, overwrite: bool, resume: 
             raise RunDirError(f"{run_dir}: the run finished; nothing to resume")
         if info.get("live"):
             raise RunDirError(f"{run_dir}: a live run cannot be resumed (its input is gone); start a new one")
-        for leftover in [*run_dir.glob(".*.tmp-*"), *(run_dir / KEYFRAME_IMAGES_DIR).glob(".*.tmp-*")]:
+        for leftover in [*run_dir.glob(".*.tmp-*"), *(run_dir / KEYFRAME_IMAGES_DIR).glob(".*.tmp-*"),
+                         *(run_dir / KEYFRAME_FEATURES_DIR).glob(".*.tmp-*")]:
             leftover.unlink()  # a write cut short by a kill (ggfslam.atomic): never a file of the run
         if (run_dir / CHECKPOINT_FILE).is_file():
             ckpt = load_checkpoint(run_dir)
@@ -339,6 +341,9 @@ def _restore_or_start(config: Config, dataset: RGBDDataset, run_dir: Path, ckpt:
         log.info("resumed at frame %d", st.start)
     else:
         st.tracker = make_tracker(config, dataset)
+    slam_map = getattr(st.tracker, "map", None)
+    if slam_map is not None:  # keyframes' features on disk, behind a bounded cache (a checkpoint's: found again)
+        slam_map.feature_store.attach(run_dir / KEYFRAME_FEATURES_DIR, config.backend.feature_cache)
     write_json(run_dir / RUN_INFO_FILE, info)
     st.mapper = make_mapper(config, dataset.camera, st.tracker, run_dir)
     if st.mapper is not None:

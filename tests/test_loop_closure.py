@@ -213,3 +213,28 @@ def test_matching_and_input_checks(loop_seq, loop_kfs):
     assert det.add_keyframe(0, *empty, np.eye(4)) is None  # a keyframe without features is fine
     det.update_poses({0: a.T_wc, 99: np.eye(4)})  # unknown ids are ignored
     assert np.array_equal(det.keyframes[0].T_wc, a.T_wc)
+
+
+def test_a_detector_reading_features_from_an_attached_store_finds_the_same_loops(loop_seq, loop_kfs, loop_run,
+                                                                                tmp_path):
+    """With the SLAM map's feature store (on disk, one keyframe cached) the detector keeps no descriptors itself."""
+    from ggfslam.backend.feature_store import FeatureStore
+    from ggfslam.frontend.features import Features
+
+    store = FeatureStore()
+    store.attach(tmp_path, cache_size=1)
+    det = LoopDetector(loop_seq.camera, feature_store=store)
+    loops = {}
+    for k, kf in enumerate(loop_kfs):
+        z = np.nan_to_num(kf.pts[:, 2], nan=0.0)
+        store.put(k, Features(kf.uv, np.zeros(len(kf.uv), np.int64), kf.desc, z, kf.pts))
+        res = det.add_keyframe(k, kf.uv, kf.desc, kf.pts, kf.T_wc, last_three(k))
+        if res is not None:
+            loops[k] = res
+    _, expected = loop_run
+    assert sorted(loops) == sorted(expected) and loops
+    for k, res in loops.items():
+        assert res.match_id == expected[k].match_id and res.inliers == expected[k].inliers
+        np.testing.assert_array_equal(res.T_match_query, expected[k].T_match_query)
+    assert all(kf.descriptors is None and kf.points_cam is None for kf in det.keyframes.values())
+    assert store.reads > 0  # candidates were read back from disk

@@ -159,6 +159,9 @@ def test_a_run_killed_at_a_random_moment_resumes_to_the_same_result(sequence, cl
     assert load_checkpoint(run)["finished"]
     assert len(read_gaussians_ply(run / "gaussians_planarity.ply")["means"]) > 0
     assert not list(run.glob(".*.tmp-*")) and not list((run / "keyframes").glob(".*.tmp-*"))
+    assert not list((run / "keyframe_features").glob(".*.tmp-*"))
+    assert sorted(p.name for p in (run / "keyframe_features").iterdir()) == sorted(
+        p.name for p in (clean / "keyframe_features").iterdir())
 
 
 def test_ctrl_c_while_the_kernels_compile_stops_the_run_resumably_and_the_log_keeps_the_compile(

@@ -59,7 +59,7 @@ class Backend:
         if bcfg.loop_closure:
             from ggfslam.backend.loop_closure import LoopDetector
 
-            self.loop_detector = LoopDetector(camera)
+            self.loop_detector = LoopDetector(camera, feature_store=self.map.feature_store)
         self.gcgr = None  # a GCGRSource once the map is attached (attach_gcgr)
         self._queue: queue.Queue | None = None
         self._thread: threading.Thread | None = None
@@ -90,6 +90,8 @@ class Backend:
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
         self.__dict__.setdefault("_plane_depth", {})  # checkpoints written before planes were detected here
+        if self.loop_detector is not None and getattr(self.loop_detector, "feature_store", None) is None:
+            self.loop_detector.feature_store = self.map.feature_store  # checkpoints from before the feature store
         self._solver = None
         self._start_worker()
 
@@ -289,6 +291,7 @@ class Backend:
             "fused_observations": s.fused_observations, "fused_landmarks": s.fused_landmarks,
             "loops": len(s.loops), "global_ba_runs": s.global_ba_runs, "final_ba_ms": 1000 * s.final_ba_seconds,
             "global_ba_ms_mean": 1000 * s.global_ba_seconds / max(s.global_ba_runs, 1),
+            "feature_reads": self.map.feature_store.reads,  # keyframes' features read back from disk (feature_cache)
             **({"gcgr": self.gcgr.summary()} if self.gcgr is not None else {}),
             **({"solved_in_process": s.solved_in_process} if self.bcfg.concurrent and self.bcfg.solver == "process"
                else {}),

@@ -38,6 +38,7 @@ def _redundant(smap: SlamMap, kf: KeyFrame, share: float, observers: int) -> boo
     if int((n_obs > observers).sum()) <= need:  # cannot be redundant: skip the per-observation scale check
         return False
     octave = kf.features.octave
+    octaves: dict[int, np.ndarray] = {}  # other keyframes' octaves, each read from the feature store once
     redundant = 0
     for lm, kp, n in zip(lms.tolist(), kps.tolist(), n_obs.tolist()):
         if n <= observers:
@@ -45,7 +46,12 @@ def _redundant(smap: SlamMap, kf: KeyFrame, share: float, observers: int) -> boo
         finest = int(octave[kp]) + 1
         seen = 0
         for other, okp in smap.observations[lm].items():
-            if other != kf.id and int(smap.keyframes[other].features.octave[okp]) <= finest:
+            if other == kf.id:
+                continue
+            oct_other = octaves.get(other)
+            if oct_other is None:
+                oct_other = octaves[other] = smap.keyframes[other].features.octave
+            if int(oct_other[okp]) <= finest:
                 seen += 1
                 if seen >= observers:
                     redundant += 1

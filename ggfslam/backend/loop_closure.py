@@ -122,10 +122,10 @@ class LoopResult:
 
 @dataclass
 class _Keyframe:
-    """What the detector keeps per keyframe."""
+    """What the detector keeps per keyframe (descriptors and points None: read from the detector's feature store)."""
 
-    descriptors: np.ndarray  # [N, 32] uint8
-    points_cam: np.ndarray  # [N, 3] float64, NaN without depth
+    descriptors: np.ndarray | None  # [N, 32] uint8
+    points_cam: np.ndarray | None  # [N, 3] float64, NaN without depth
     T_wc: np.ndarray  # [4, 4]
     covisible: set[int]
     bow: BowVector
@@ -416,10 +416,15 @@ def _verified(camera: Camera, T_mq, cov, pairs, obj, img, keep) -> PairVerificat
 # detector
 # --------------------------------------------------------------------------------------------------
 class LoopDetector:
-    """Keeps every keyframe's features and BoW vector and reports verified loops as keyframes arrive."""
+    """Keeps every keyframe's features and BoW vector and reports verified loops as keyframes arrive.
 
-    def __init__(self, camera: Camera, vocabulary: Vocabulary | None = None, cfg: LoopClosureConfig | None = None):
+    Given the SLAM map's ``feature_store`` (a ``FeatureStore`` holding every keyframe it is told about), it keeps
+    no copy of the keyframes' descriptors and points: a candidate's are read from the store when it is verified."""
+
+    def __init__(self, camera: Camera, vocabulary: Vocabulary | None = None, cfg: LoopClosureConfig | None = None,
+                 feature_store=None):
         self.camera = camera
+        self.feature_store = feature_store
         self.vocabulary = vocabulary if vocabulary is not None else Vocabulary.default()
         self.cfg = cfg or LoopClosureConfig()
         self.database = KeyframeDatabase()
@@ -464,8 +469,8 @@ class LoopDetector:
         result = self._detect(kf_id, uv, descriptors, points_cam, np.asarray(T_wc, np.float64), covisible, bow,
                               planes)
         self.remove_keyframe(kf_id)  # re-adding an id replaces it
-        self.keyframes[kf_id] = _Keyframe(descriptors, points_cam, np.asarray(T_wc, np.float64).copy(), covisible, bow,
-                                          planes)
+        kept = (None, None) if self.feature_store is not None else (descriptors, points_cam)
+        self.keyframes[kf_id] = _Keyframe(*kept, np.asarray(T_wc, np.float64).copy(), covisible, bow, planes)
         self.database.add(kf_id, bow)
         return result
 
@@ -504,8 +509,12 @@ class LoopDetector:
         best: LoopResult | None = None
         for cid, score in cands:
             kf = self.keyframes[cid]
-            out = verify_loop_pair(self.camera, uv, desc, pts, kf.descriptors, kf.points_cam, self.cfg, planes,
-                                   kf.planes)
+            if kf.descriptors is None:
+                f = self.feature_store.get(cid)
+                kf_desc, kf_pts = f.descriptors, f.points_cam
+            else:
+                kf_desc, kf_pts = kf.descriptors, kf.points_cam
+            out = verify_loop_pair(self.camera, uv, desc, pts, kf_desc, kf_pts, self.cfg, planes, kf.planes)
             if out is None:
                 continue
             if self.cfg.max_correction_m is not None:

@@ -8,26 +8,51 @@ from __future__ import annotations
 
 import threading
 from collections import Counter, deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from itertools import chain
 
 import numpy as np
 
+from ggfslam.backend.feature_store import FeatureStore
 from ggfslam.frontend.features import Features
 from ggfslam.geometry.se3 import invert
 
 
-@dataclass
 class KeyFrame:
-    """A keyframe: its pose estimate and features; ``landmark_ids[i]`` is the map point seen at keypoint i (-1: none)."""
+    """A keyframe: its pose estimate and features; ``landmark_ids[i]`` is the map point seen at keypoint i (-1: none).
 
-    id: int
-    frame_index: int
-    timestamp: float
-    T_wc: np.ndarray  # [4, 4] camera-to-world, updated by bundle adjustment and loop closure
-    features: Features
-    landmark_ids: np.ndarray  # [N] int64
-    meta: dict = field(default_factory=dict)
+    Once in a map, its features live in the map's ``FeatureStore`` (on disk in a run) and ``features`` reads them
+    from there."""
+
+    def __init__(self, id: int, frame_index: int, timestamp: float, T_wc: np.ndarray, features: Features,
+                 landmark_ids: np.ndarray, meta: dict | None = None):
+        self.id = id
+        self.frame_index = frame_index
+        self.timestamp = timestamp
+        self.T_wc = T_wc  # [4, 4] camera-to-world, updated by bundle adjustment and loop closure
+        self._features: Features | None = features
+        self._store: FeatureStore | None = None
+        self.landmark_ids = landmark_ids  # [N] int64
+        self.meta = {} if meta is None else meta
+
+    @property
+    def features(self) -> Features:
+        """The keyframe's keypoints (from the map's feature store once it is in a map)."""
+        return self._features if self._store is None else self._store.get(self.id)
+
+    def keep_features_in(self, store: FeatureStore) -> None:
+        """Hand the features to ``store``; from now on they are read from there."""
+        if self._store is None:
+            store.put(self.id, self._features)
+            self._store, self._features = store, None
+
+    def __repr__(self) -> str:
+        return f"KeyFrame(id={self.id}, frame_index={self.frame_index}, timestamp={self.timestamp})"
+
+    def __setstate__(self, state: dict) -> None:  # checkpoints from before the feature store held the features
+        if "features" in state:
+            state["_features"], state["_store"] = state.pop("features"), None
+        self.__dict__.update(state)
 
 
 @dataclass
@@ -70,6 +95,7 @@ class SlamMap:
         self.plane_observations: dict[int, dict[int, np.ndarray]] = {}  # plane id -> {kf id: camera coefficients [4]}
         self.retired: dict[int, RetiredKeyFrame] = {}  # culled keyframes, by id
         self.tracking_ref = -1  # tracking's reference keyframe: never culled while it is one
+        self.feature_store = FeatureStore()  # the keyframes' features (in memory until a run attaches a folder)
 
     def __getstate__(self) -> dict:  # checkpoints: the lock is per process
         state = self.__dict__.copy()
@@ -88,6 +114,10 @@ class SlamMap:
             self._free = np.nonzero(~self.alive[: self.size])[0].tolist()
         self._free = deque(self._free)
         self.lock = threading.RLock()
+        if "feature_store" not in state:  # checkpoints from before the store: the keyframes held their features
+            self.feature_store = FeatureStore()
+            for kf in self.keyframes.values():
+                kf.keep_features_in(self.feature_store)
 
     # --- landmarks --------------------------------------------------------------------------------
     def _grow(self) -> None:
@@ -185,7 +215,8 @@ class SlamMap:
 
     # --- keyframes --------------------------------------------------------------------------------
     def add_keyframe(self, kf: KeyFrame) -> None:
-        """Insert a keyframe (its observations are added by the caller)."""
+        """Insert a keyframe (its observations are added by the caller); its features go to ``feature_store``."""
+        kf.keep_features_in(self.feature_store)
         with self.lock:
             self.keyframes[kf.id] = kf
 
