@@ -41,7 +41,7 @@ def test_an_attached_store_keeps_cache_size_keyframes_in_memory_and_reads_the_re
     for k, f in feats.items():
         store.put(k, f)
     assert len(store._cache) == 2 and len(store) == 5 and sorted(p.name for p in tmp_path.iterdir()) == [
-        f"kf_{k:06d}.npz" for k in range(5)]
+        f"kf_{k:06d}.npy" for k in range(5)]
     for k in (4, 3, 0, 1, 2):
         _assert_same(store.get(k), feats[k])
     assert store.reads == 3  # keyframes 0-2 had left the cache; 3 and 4 were its last two
@@ -59,7 +59,7 @@ def test_a_store_in_memory_attached_later_writes_what_it_holds(tmp_path):
     store.put(3, f)
     assert not list(tmp_path.iterdir())
     store.attach(tmp_path / "feats", cache_size=1)
-    assert (tmp_path / "feats" / "kf_000003.npz").is_file()
+    assert (tmp_path / "feats" / "kf_000003.npy").is_file()
     store.put(4, _features(20, 2))
     _assert_same(store.get(3), f)
 
@@ -93,9 +93,9 @@ def test_attaching_a_checkpoints_store_names_a_missing_file_and_drops_files_made
     back = pickle.loads(pickle.dumps(store))
     store.put(3, _features(10, 3))  # after the checkpoint: made again when the run resumes
     back.attach(tmp_path)
-    assert not (tmp_path / "kf_000003.npz").exists() and len(back) == 3
-    (tmp_path / "kf_000001.npz").unlink()
-    with pytest.raises(RunDirError, match="kf_000001.npz"):
+    assert not (tmp_path / "kf_000003.npy").exists() and len(back) == 3
+    (tmp_path / "kf_000001.npy").unlink()
+    with pytest.raises(RunDirError, match="kf_000001.npy"):
         pickle.loads(pickle.dumps(back)).attach(tmp_path)
 
 
@@ -104,8 +104,8 @@ def test_a_damaged_features_file_is_an_error_naming_it(tmp_path):
     store.attach(tmp_path, cache_size=1)
     store.put(0, _features(10, 0))
     store.put(1, _features(10, 1))
-    (tmp_path / "kf_000000.npz").write_bytes(b"not a zip")
-    with pytest.raises(RunDirError, match="kf_000000.npz"):
+    (tmp_path / "kf_000000.npy").write_bytes(b"not a zip")
+    with pytest.raises(RunDirError, match="kf_000000.npy"):
         store.get(0)
 
 
@@ -147,5 +147,5 @@ def test_a_run_keeping_one_keyframes_features_in_memory_tracks_exactly_as_one_ke
     one, all_ = (np.loadtxt(tmp_path / f"cache{c}" / "trajectory.txt") for c in (1, 4096))
     np.testing.assert_array_equal(one, all_)
     assert runs[1]["backend"]["keyframes"] == runs[4096]["backend"]["keyframes"] >= 12
-    files = list((tmp_path / "cache1" / "keyframe_features").glob("kf_*.npz"))
+    files = list((tmp_path / "cache1" / "keyframe_features").glob("kf_*.npy"))
     assert len(files) == runs[1]["backend"]["keyframes"]
