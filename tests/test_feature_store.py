@@ -104,7 +104,7 @@ def test_a_damaged_features_file_is_an_error_naming_it(tmp_path):
     store.attach(tmp_path, cache_size=1)
     store.put(0, _features(10, 0))
     store.put(1, _features(10, 1))
-    (tmp_path / "kf_000000.npy").write_bytes(b"not a zip")
+    (tmp_path / "kf_000000.npy").write_bytes(b"not an .npy file")
     with pytest.raises(RunDirError, match="kf_000000.npy"):
         store.get(0)
 
