@@ -11,6 +11,7 @@ Without a folder (unit tests, notebooks, a map built by hand) every keyframe's f
 """
 from __future__ import annotations
 
+import dataclasses
 import threading
 from collections import OrderedDict
 from pathlib import Path
@@ -21,7 +22,7 @@ from ggfslam.atomic import atomic_path
 from ggfslam.errors import RunDirError
 from ggfslam.frontend.features import Features
 
-_FIELDS = ("uv", "octave", "descriptors", "depth", "points_cam")
+_FIELDS = tuple(f.name for f in dataclasses.fields(Features))  # uv, octave, descriptors, depth, points_cam
 
 
 class FeatureStore:

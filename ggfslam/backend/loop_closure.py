@@ -14,6 +14,7 @@ pose covariance inside the gates. Its relative pose and covariance feed a loop e
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -23,6 +24,9 @@ from ggfslam.backend.place_recognition import BowVector, KeyframeDatabase, Vocab
 from ggfslam.data.types import Camera
 from ggfslam.geometry.pnp import pnp_ransac
 from ggfslam.geometry.se3 import invert, se3_exp
+
+if TYPE_CHECKING:
+    from ggfslam.backend.feature_store import FeatureStore
 
 __all__ = ["LoopClosureConfig", "LoopResult", "LoopDetector", "PairVerification", "match_descriptors",
            "verify_loop_pair"]
@@ -422,7 +426,7 @@ class LoopDetector:
     no copy of the keyframes' descriptors and points: a candidate's are read from the store when it is verified."""
 
     def __init__(self, camera: Camera, vocabulary: Vocabulary | None = None, cfg: LoopClosureConfig | None = None,
-                 feature_store=None):
+                 feature_store: FeatureStore | None = None):
         self.camera = camera
         self.feature_store = feature_store
         self.vocabulary = vocabulary if vocabulary is not None else Vocabulary.default()
